@@ -1,0 +1,337 @@
+"""Training losses for VPR: the triplet family of DW-T-Loss and Multi-Similarity.
+
+Triplet family, from "Distance-Ranking-Based Weighted Triplet Loss for Visual Place
+Recognition" (Xiong, Xu, Meng):
+
+==============================  ==============  ====================================================
+function                        paper equation  formula, per triplet (q, p, n)
+==============================  ==============  ====================================================
+:func:`triplet_loss`            Eq. (3)         ``max(0, d(q,p) - d(q,n) + m)``
+:func:`distance_weight`         Eq. (4)         ``w = (1 + eps) / (geo_qp / sigma + eps) - 1``
+:func:`weighted_triplet_loss`   Eq. (4) x (3)   ``w * max(0, d(q,p) - d(q,n) + m)`` (W-T-Loss)
+:func:`ce_triplet_loss`         Eqs. (5)-(8)    ``-log d_hat_n = softplus(d(q,p) - d(q,n))``
+:func:`dw_triplet_loss`         Eq. (9)         ``-w * log d_hat_n`` (DW-T-Loss)
+==============================  ==============  ====================================================
+
+Conventions of the triplet family:
+
+- ``q``, ``p`` are ``(B, D)`` descriptors; ``n`` is ``(B, D)`` (one negative per query) or
+  ``(B, M, D)`` (M negatives per query, each forming one triplet with the query's positive).
+- ``d(a, b)`` is the plain (not squared) Euclidean distance, without the ``eps=1e-6`` that
+  :class:`torch.nn.TripletMarginLoss` adds inside its distance; both agree to ~``sqrt(D)*1e-6``.
+- The default reduction is the paper's ``"sum"`` over all triplets; ``"mean"`` averages over the
+  ``B*M`` triplets and ``"none"`` returns the ``(B, M)`` (or ``(B,)`` for a 2-D ``n``) losses.
+- Margins differ between code bases: the original NetVLAD MATLAB code uses ``m = 0.1`` on
+  *squared* L2 distances, whereas Nanne's pytorch-NetVlad uses ``m = sqrt(0.1)`` on plain L2
+  (``TripletMarginLoss(margin=0.1**0.5, p=2)``). The default here is the paper's ``m = 0.1``.
+
+Multi-Similarity (Wang et al., CVPR 2019), as used to train SALAD and CliqueMining through
+pytorch-metric-learning: :func:`multi_similarity_loss` and :func:`multi_similarity_miner`.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from vpr_nb._checks import check_positive, check_tensor
+
+__all__ = [
+    "triplet_loss",
+    "distance_weight",
+    "weighted_triplet_loss",
+    "ce_triplet_loss",
+    "dw_triplet_loss",
+    "multi_similarity_loss",
+    "multi_similarity_miner",
+]
+
+_REDUCTIONS = ("sum", "mean", "none")
+
+MinerPairs = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+# ----------------------------------------------------------------------------------------------
+# private helpers
+# ----------------------------------------------------------------------------------------------
+def _check_reduction(reduction: str) -> None:
+    if reduction not in _REDUCTIONS:
+        raise ValueError(f"reduction must be one of {_REDUCTIONS} ('sum' is the paper's), got {reduction!r}")
+
+
+def _triplet_distances(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, bool]:
+    """Validate a batch of triplets and return ``d(q,p)`` ``(B, 1)``, ``d(q,n)`` ``(B, M)``, 2-D-``n`` flag.
+
+    The single place where the triplet family measures plain Euclidean distances. NaN/inf are
+    looked for in the ``B*(M+1)`` distances rather than in the ``B*(M+2)*D`` inputs (every input
+    value reaches a distance, so a non-finite one makes that distance non-finite); only then are
+    the inputs searched, to name the culprit. This keeps validation cheap next to the loss itself.
+    """
+    check_tensor(q, "q", ndim=2, finite=False)
+    check_tensor(p, "p", ndim=2, finite=False)
+    check_tensor(n, "n", ndim=(2, 3), finite=False)
+    if q.shape[0] == 0 or q.shape[1] == 0:
+        raise ValueError(f"q must be a non-empty (B, D) batch of descriptors, got shape {tuple(q.shape)}")
+    if p.shape != q.shape:
+        raise ValueError(f"p must have the same (B, D) shape as q {tuple(q.shape)}: one positive per query; "
+                         f"got {tuple(p.shape)}")
+    single = n.ndim == 2
+    negatives = n.unsqueeze(1) if single else n
+    if negatives.shape[0] != q.shape[0] or negatives.shape[2] != q.shape[1]:
+        raise ValueError(f"n must be (B, D) or (B, M, D) with B={q.shape[0]} and D={q.shape[1]} as in q, "
+                         f"got {tuple(n.shape)}")
+    if negatives.shape[1] == 0:
+        raise ValueError("n has zero negatives per query (M=0); every query needs at least one negative")
+    for name, t in (("p", p), ("n", n)):
+        if t.dtype != q.dtype or t.device != q.device:
+            raise ValueError(f"{name} is {t.dtype} on {t.device} but q is {q.dtype} on {q.device}; "
+                             f"convert with {name}.to(q)")
+    d_qp = torch.linalg.vector_norm(q - p, dim=1, keepdim=True)
+    d_qn = torch.linalg.vector_norm(q.unsqueeze(1) - negatives, dim=2)
+    if not bool(torch.isfinite(d_qp).all() & torch.isfinite(d_qn).all()):
+        for name, t in (("q", q), ("p", p), ("n", n)):
+            check_tensor(t, name)  # raises, naming the input that holds NaN or inf
+        raise ValueError(f"descriptor distances overflow {q.dtype}: the values are finite but too large "
+                         f"(max |x| = {max(t.abs().max().item() for t in (q, p, n)):.3g}); L2-normalise the descriptors")
+    return d_qp, d_qn, single
+
+
+def _reduce(losses: torch.Tensor, single: bool, reduction: str) -> torch.Tensor:
+    """Reduce ``(B, M)`` per-triplet losses: ``sum``, ``mean`` over B*M, or ``none`` ((B,) if ``single``)."""
+    if reduction == "sum":
+        return losses.sum()
+    if reduction == "mean":
+        return losses.mean()
+    return losses.squeeze(1) if single else losses
+
+
+def _geo_like(geo_qp, q: torch.Tensor) -> torch.Tensor:
+    """``geo_qp`` as a ``(B,)`` tensor with the dtype and device of ``q`` (values checked by distance_weight)."""
+    try:
+        geo = geo_qp if isinstance(geo_qp, torch.Tensor) else torch.as_tensor(np.asarray(geo_qp))
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"geo_qp must be a (B,) array of distances in metres; could not convert: {exc}") from None
+    if geo.dtype == torch.bool or geo.is_complex():
+        raise ValueError(f"geo_qp must hold real numbers (metres), got dtype {geo.dtype}")
+    if geo.shape != (q.shape[0],):
+        raise ValueError(f"geo_qp must have shape (B,) = ({q.shape[0]},): the query-positive distance of each "
+                         f"query, got {tuple(geo.shape)}")
+    return geo.to(device=q.device, dtype=q.dtype)
+
+
+def _check_labels(labels, batch: int, device: torch.device) -> torch.Tensor:
+    """Return ``labels`` as a 1-D tensor of length ``batch`` on ``device`` (place ids, no NaN)."""
+    try:
+        labels = torch.as_tensor(labels if isinstance(labels, torch.Tensor) else np.asarray(labels), device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"labels must be a 1-D array of integer place ids; could not convert: {exc}") from None
+    if labels.ndim != 1 or labels.shape[0] != batch:
+        raise ValueError(f"labels must be 1-D with one place id per embedding (length {batch}), "
+                         f"got shape {tuple(labels.shape)}")
+    if labels.is_floating_point() and not torch.isfinite(labels).all():
+        raise ValueError("labels contain NaN or inf; every embedding needs a valid place id")
+    if labels.is_complex() or labels.dtype == torch.bool:
+        raise ValueError(f"labels must be integer place ids, got dtype {labels.dtype}")
+    return labels
+
+
+def _check_embeddings(embeddings: torch.Tensor) -> torch.Tensor:
+    check_tensor(embeddings, "embeddings", ndim=2)
+    if embeddings.shape[0] == 0 or embeddings.shape[1] == 0:
+        raise ValueError(f"embeddings must be a non-empty (B, D) batch, got shape {tuple(embeddings.shape)}")
+    return embeddings
+
+
+def _all_pair_masks(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boolean ``(B, B)`` masks of all positive pairs (same label, ``i != j``) and negative pairs."""
+    same = labels.unsqueeze(0) == labels.unsqueeze(1)
+    eye = torch.eye(labels.shape[0], dtype=torch.bool, device=labels.device)
+    return same & ~eye, ~same
+
+
+def _index_vector(x, name: str, device: torch.device) -> torch.Tensor:
+    t = torch.as_tensor(x, device=device)
+    if t.ndim != 1:
+        raise ValueError(f"miner_pairs: {name} must be a 1-D index tensor, got shape {tuple(t.shape)}")
+    if t.numel() == 0:
+        return t.long()
+    if t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+        raise ValueError(f"miner_pairs: {name} must hold integer indices, got dtype {t.dtype}")
+    return t.long()
+
+
+def _pair_masks_from_miner(miner_pairs: Sequence, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boolean ``(B, B)`` masks from a miner's ``(a1, p, a2, n)``, checking every pair against ``labels``."""
+    if not isinstance(miner_pairs, (tuple, list)) or len(miner_pairs) != 4:
+        raise ValueError("miner_pairs must be the tuple (a1, p, a2, n) returned by multi_similarity_miner, or None")
+    batch = labels.shape[0]
+    a1, p, a2, n = (_index_vector(x, name, labels.device) for x, name in zip(miner_pairs, ("a1", "p", "a2", "n")))
+    if a1.shape != p.shape or a2.shape != n.shape:
+        raise ValueError(f"miner_pairs: a1/p and a2/n must have equal lengths, got {len(a1)}/{len(p)} and "
+                         f"{len(a2)}/{len(n)}")
+    for name, idx in (("a1", a1), ("p", p), ("a2", a2), ("n", n)):
+        if idx.numel() and (idx.min() < 0 or idx.max() >= batch):
+            raise ValueError(f"miner_pairs: {name} has indices outside [0, {batch}); mine on this same batch")
+    if (a1 == p).any() or (labels[a1] != labels[p]).any():
+        raise ValueError("miner_pairs: every (a1, p) must be two different embeddings of the same place")
+    if (labels[a2] == labels[n]).any():
+        raise ValueError("miner_pairs: every (a2, n) must be two embeddings of different places")
+    pos = torch.zeros(batch, batch, dtype=torch.bool, device=labels.device)
+    neg = torch.zeros_like(pos)
+    pos[a1, p] = True
+    neg[a2, n] = True
+    return pos, neg
+
+
+def _log_one_plus_sum_exp(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Row-wise ``log(1 + sum_{j in mask} exp(x_ij))``, stable: logsumexp with an appended 0."""
+    x = x.masked_fill(~mask, float("-inf"))
+    zeros = torch.zeros(x.shape[0], 1, dtype=x.dtype, device=x.device)
+    return torch.logsumexp(torch.cat([x, zeros], dim=1), dim=1)
+
+
+# ----------------------------------------------------------------------------------------------
+# triplet family (Xiong, Xu, Meng)
+# ----------------------------------------------------------------------------------------------
+def triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, margin: float = 0.1,
+                 reduction: str = "sum") -> torch.Tensor:
+    """Triplet margin loss, Eq. (3) of DW-T-Loss: ``sum max(0, d(q,p) - d(q,n) + margin)``.
+
+    Equals ``torch.nn.TripletMarginLoss(margin, p=2, reduction="sum")`` up to the ``eps=1e-6``
+    torch adds inside its distance. ``n`` may be ``(B, D)`` or ``(B, M, D)``.
+    """
+    _check_reduction(reduction)
+    margin = check_positive(margin, "margin", allow_zero=True)
+    d_qp, d_qn, single = _triplet_distances(q, p, n)
+    return _reduce(F.relu(d_qp - d_qn + margin), single, reduction)
+
+
+def distance_weight(geo_qp, sigma: float = 800.0, eps: float = 0.1):
+    """Geographic weight of a query-positive pair, Eq. (4) of DW-T-Loss.
+
+    ``w = (1 + eps) / (geo_qp / sigma + eps) - 1`` decreases with distance: ``w = 1 / eps`` at 0 m
+    (10 for the default ``eps = 0.1``, so ``eps`` sets the largest weight), ``w = 0`` at
+    ``geo_qp = sigma`` and **negative beyond sigma**, down to ``-1`` far away. Not clipped: a
+    "positive" farther than sigma then *rewards* a violated triplet, which is why sigma must
+    exceed the positive radius.
+
+    Elementwise on any shape. A torch tensor gives a tensor (integer tensors become the default
+    float dtype); anything else (numpy array, list, scalar) gives a float64 numpy array.
+    """
+    sigma = check_positive(sigma, "sigma")
+    eps = check_positive(eps, "eps")
+    if isinstance(geo_qp, torch.Tensor):
+        geo = geo_qp if geo_qp.is_floating_point() else geo_qp.to(torch.get_default_dtype())
+        finite, nonneg = bool(torch.isfinite(geo).all()), bool((geo >= 0).all())
+    else:
+        try:
+            geo = np.asarray(geo_qp, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"geo_qp must be numbers (metres), got {type(geo_qp).__name__}") from None
+        finite, nonneg = bool(np.isfinite(geo).all()), bool((geo >= 0).all())
+    if not finite:
+        raise ValueError("geo_qp contains NaN or inf; every query-positive pair needs a valid distance in metres")
+    if not nonneg:
+        raise ValueError("geo_qp contains negative distances; geographic distances are >= 0 metres")
+    return (1.0 + eps) / (geo / sigma + eps) - 1.0
+
+
+def weighted_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp, margin: float = 0.1,
+                          sigma: float = 800.0, eps: float = 0.1, reduction: str = "sum") -> torch.Tensor:
+    """W-T-Loss: Eq. (4) weight times Eq. (3) hinge, ``sum w(geo_qp) * max(0, d(q,p) - d(q,n) + margin)``.
+
+    Each query's weight (from its ``(B,)`` query-positive distance in metres) multiplies all M of
+    its triplets. Weights are negative for ``geo_qp > sigma`` (see :func:`distance_weight`).
+    """
+    _check_reduction(reduction)
+    margin = check_positive(margin, "margin", allow_zero=True)
+    d_qp, d_qn, single = _triplet_distances(q, p, n)
+    w = distance_weight(_geo_like(geo_qp, q), sigma, eps)
+    return _reduce(w.unsqueeze(1) * F.relu(d_qp - d_qn + margin), single, reduction)
+
+
+def ce_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, reduction: str = "sum") -> torch.Tensor:
+    """Cross-entropy triplet loss, Eqs. (5)-(8) of DW-T-Loss: ``sum -log d_hat_n``.
+
+    ``d_hat_n = e^{d(q,n)} / (e^{d(q,p)} + e^{d(q,n)})`` (softmax of the two distances), so
+    ``-log d_hat_n = softplus(d(q,p) - d(q,n))``, which stays finite for any distance.
+    """
+    _check_reduction(reduction)
+    d_qp, d_qn, single = _triplet_distances(q, p, n)
+    return _reduce(F.softplus(d_qp - d_qn), single, reduction)
+
+
+def dw_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp, sigma: float = 800.0,
+                    eps: float = 0.1, reduction: str = "sum") -> torch.Tensor:
+    """DW-T-Loss, Eq. (9): ``sum -w(geo_qp) * log d_hat_n`` (Eq. (4) weight times Eqs. (5)-(8)).
+
+    Weights are negative for ``geo_qp > sigma`` (see :func:`distance_weight`).
+    """
+    _check_reduction(reduction)
+    d_qp, d_qn, single = _triplet_distances(q, p, n)
+    w = distance_weight(_geo_like(geo_qp, q), sigma, eps)
+    return _reduce(w.unsqueeze(1) * F.softplus(d_qp - d_qn), single, reduction)
+
+
+# ----------------------------------------------------------------------------------------------
+# Multi-Similarity (Wang et al., CVPR 2019), as used by SALAD / CliqueMining
+# ----------------------------------------------------------------------------------------------
+def multi_similarity_loss(embeddings: torch.Tensor, labels, alpha: float = 1.0, beta: float = 50.0,
+                          base: float = 0.0, miner_pairs: MinerPairs | None = None) -> torch.Tensor:
+    """Multi-Similarity loss (Eq. (6) of Wang et al.) on dot-product similarities ``S = E E^T``.
+
+    For each anchor i with positives P_i and negatives N_i (all pairs, or only ``miner_pairs``)::
+
+        L_i = 1/alpha * log(1 + sum_{p in P_i} e^{-alpha (S_ip - base)})
+            + 1/beta  * log(1 + sum_{n in N_i} e^{ beta (S_in - base)})
+
+    and the loss is ``sum_i L_i / B``: like pytorch-metric-learning's MeanReducer over its
+    per-anchor "element" losses, *every* anchor counts in the mean, an anchor without pairs
+    contributing 0 (and one with positives but no mined negatives contributing only its
+    positive term). Equal to ``MultiSimilarityLoss(alpha, beta, base, distance=DotProductSimilarity())``
+    on L2-normalised embeddings (that PML distance L2-normalises by default; this function does
+    not). One difference: PML returns 0 when every index tensor has at most one pair; this
+    function still evaluates the formula.
+    """
+    _check_embeddings(embeddings)
+    labels = _check_labels(labels, embeddings.shape[0], embeddings.device)
+    alpha = check_positive(alpha, "alpha")
+    beta = check_positive(beta, "beta")
+    try:
+        base = float(base)
+    except (TypeError, ValueError):
+        raise ValueError(f"base (the similarity threshold lambda) must be a number, got {base!r}") from None
+    if not np.isfinite(base):
+        raise ValueError(f"base (the similarity threshold lambda) must be finite, got {base}")
+    if miner_pairs is None:
+        pos_mask, neg_mask = _all_pair_masks(labels)
+    else:
+        pos_mask, neg_mask = _pair_masks_from_miner(miner_pairs, labels)
+    sim = embeddings @ embeddings.T
+    pos_term = _log_one_plus_sum_exp(-alpha * (sim - base), pos_mask) / alpha
+    neg_term = _log_one_plus_sum_exp(beta * (sim - base), neg_mask) / beta
+    return (pos_term + neg_term).mean()
+
+
+def multi_similarity_miner(embeddings: torch.Tensor, labels, epsilon: float = 0.1) -> MinerPairs:
+    """Multi-Similarity pair mining (Sec. 3.3 of Wang et al.) on cosine similarities.
+
+    Keeps the negative (i, n) if ``S_in + epsilon > min_p S_ip`` and the positive (i, p) if
+    ``S_ip - epsilon < max_n S_in``. Returns ``(a1, p, a2, n)`` LongTensors (positive pairs
+    ``(a1[k], p[k])``, negative pairs ``(a2[k], n[k])``), row-major order; the same pairs as
+    ``pytorch_metric_learning.miners.MultiSimilarityMiner(epsilon)``. No gradient flows.
+    """
+    _check_embeddings(embeddings)
+    labels = _check_labels(labels, embeddings.shape[0], embeddings.device)
+    epsilon = check_positive(epsilon, "epsilon", allow_zero=True)
+    with torch.no_grad():
+        x = F.normalize(embeddings, p=2, dim=1)
+        sim = x @ x.T
+        pos_mask, neg_mask = _all_pair_masks(labels)
+        hardest_pos = sim.masked_fill(~pos_mask, float("inf")).amin(dim=1, keepdim=True)
+        hardest_neg = sim.masked_fill(~neg_mask, float("-inf")).amax(dim=1, keepdim=True)
+        a1, p = torch.nonzero(pos_mask & (sim - epsilon < hardest_neg), as_tuple=True)
+        a2, n = torch.nonzero(neg_mask & (sim + epsilon > hardest_pos), as_tuple=True)
+    return a1, p, a2, n
