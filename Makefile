@@ -1,0 +1,38 @@
+# vpr-notebooks: two commands on a fresh machine with only python3:
+#   make reproduce   execute the notebook sequence on the synthetic data, write reports/
+#   make test        pytest + nbval (strict) over every notebook
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+PROFILE ?= reproduce
+NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with notebooks/sanitize.cfg --nbval-cell-timeout 600
+
+.PHONY: venv test test-fast reproduce lab bench clean
+
+venv: $(STAMP)
+
+$(STAMP): environment.txt pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -r environment.txt
+	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
+	touch $(STAMP)
+
+test: venv
+	$(BIN)/python -m pytest -p no:cacheprovider -q tests notebooks $(NBVAL)
+
+test-fast: venv
+	$(BIN)/python -m pytest -p no:cacheprovider -q tests
+
+reproduce: venv
+	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports
+
+lab: venv
+	$(BIN)/jupyter lab notebooks
+
+bench: venv
+	for f in bench/bench_*.py; do echo "== $$f"; $(BIN)/python $$f --quick || exit 1; done
+
+clean:
+	rm -rf reports .pytest_cache

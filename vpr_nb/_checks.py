@@ -1,0 +1,98 @@
+"""Input validation shared by every public function of :mod:`vpr_nb`.
+
+Each helper raises a :class:`ValueError` whose message names the argument, says what was
+wrong and what is expected, so that a student who passes the wrong thing learns how to fix it.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+
+
+def as_float_matrix(x, name: str, *, dim: int | None = None, allow_empty: bool = False) -> np.ndarray:
+    """Return ``x`` as a C-contiguous float32 ``(N, D)`` numpy array, validating it.
+
+    Accepts numpy arrays, torch tensors (detached, moved to CPU) and nested lists.
+    """
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    try:
+        arr = np.asarray(x)
+    except Exception as exc:  # pragma: no cover - exotic inputs
+        raise ValueError(f"{name} must be an array of shape (N, D); could not convert {type(x).__name__}: {exc}") from exc
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must be 2-D (N, D), got shape {tuple(arr.shape)}; "
+                         f"reshape a single vector with x[None, :]")
+    if arr.shape[0] == 0 and not allow_empty:
+        raise ValueError(f"{name} is empty (shape {tuple(arr.shape)}): it needs at least one row")
+    if arr.shape[1] == 0:
+        raise ValueError(f"{name} has zero columns (shape {tuple(arr.shape)})")
+    if dim is not None and arr.shape[1] != dim:
+        raise ValueError(f"{name} must have {dim} columns, got shape {tuple(arr.shape)}")
+    arr = np.ascontiguousarray(arr, dtype=np.float32)
+    if not np.isfinite(arr).all():
+        bad = int((~np.isfinite(arr)).any(axis=1).sum())
+        raise ValueError(f"{name} contains NaN or inf in {bad} row(s); clean or drop them first")
+    return arr
+
+
+def as_utm(x, name: str, *, allow_empty: bool = False) -> np.ndarray:
+    """Return ``x`` as a float64 ``(N, 2)`` array of easting/northing in metres."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    arr = np.asarray(x)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name} must be an (N, 2) array of (easting, northing) in metres, got shape {tuple(arr.shape)}")
+    if arr.shape[0] == 0 and not allow_empty:
+        raise ValueError(f"{name} is empty: it needs at least one position")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"{name} must hold numbers, got dtype {arr.dtype}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} contains NaN or inf coordinates; every image needs a valid geotag")
+    return arr
+
+
+def check_positive(value, name: str, *, allow_zero: bool = False) -> float:
+    """Validate a finite positive (or non-negative) scalar and return it as float."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {v}")
+    if v < 0 or (v == 0 and not allow_zero):
+        need = "non-negative" if allow_zero else "positive"
+        raise ValueError(f"{name} must be {need}, got {v}")
+    return v
+
+
+def check_int(value, name: str, *, minimum: int = 1, maximum: int | None = None) -> int:
+    """Validate an integer in ``[minimum, maximum]`` and return it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    v = int(value)
+    if v < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {v}")
+    if maximum is not None and v > maximum:
+        raise ValueError(f"{name} must be <= {maximum}, got {v}")
+    return v
+
+
+def check_tensor(x, name: str, *, ndim: int | Sequence[int] | None = None, finite: bool = True) -> torch.Tensor:
+    """Validate a floating torch tensor (dimensions and finiteness) and return it."""
+    if not isinstance(x, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if not torch.is_floating_point(x):
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {x.dtype}")
+    if ndim is not None:
+        allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+        if x.ndim not in allowed:
+            raise ValueError(f"{name} must have {' or '.join(map(str, allowed))} dimensions, got shape {tuple(x.shape)}")
+    if finite and not torch.isfinite(x).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return x

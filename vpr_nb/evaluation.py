@@ -1,0 +1,174 @@
+"""Retrieval and Recall@N, the evaluation protocol of every VPR paper in the course.
+
+Protocol (as in NetVLAD, gsv-cities, SALAD and CliqueMining evaluation code):
+
+1. every database and query image is mapped to an L2-normalised global descriptor;
+2. for each query, the ``k`` nearest database descriptors are retrieved with an *exact* faiss search;
+3. a database image is a *positive* of a query when their geotags are within ``radius`` metres
+   (25 m for Pittsburgh and MSLS);
+4. Recall@N is the fraction of queries for which at least one of the first N retrievals is a positive.
+
+Queries that have no positive at all are excluded from Recall@N and a warning says how many
+(the MSLS convention; Pittsburgh has none).
+"""
+from __future__ import annotations
+
+import warnings
+from typing import Iterable, Sequence
+
+import faiss
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from ._checks import as_float_matrix, as_utm, check_int, check_positive
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def positives_within(db_utm, q_utm, radius: float) -> list[np.ndarray]:
+    """Database indices within ``radius`` metres of each query (inclusive), sorted ascending.
+
+    Uses a KD-tree range search, so memory is O(number of positives), never an N×M matrix.
+
+    Returns a list with one int64 array per query (possibly empty).
+    """
+    db = as_utm(db_utm, "db_utm")
+    q = as_utm(q_utm, "q_utm")
+    radius = check_positive(radius, "radius", allow_zero=True)
+    tree = cKDTree(db)
+    hits = tree.query_ball_point(q, r=radius, return_sorted=True)
+    return [np.asarray(h, dtype=np.int64) for h in hits]
+
+
+def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Exact k-nearest-neighbour search of each query descriptor among the database descriptors.
+
+    Descriptors are expected to be L2-normalised (as every aggregator in :mod:`vpr_nb` returns).
+    The search runs on ``faiss.IndexFlatIP``; the returned distances are the **squared Euclidean
+    distances** ``||q - d||^2 = 2 - 2 <q, d>`` (exact for unit vectors), sorted ascending, so that the
+    first column is the best match. Ranking is identical to ``faiss.IndexFlatL2`` on unit vectors.
+
+    Returns ``(distances, indices)`` as float32 / int64 arrays of shape (num_queries, k).
+    """
+    db = as_float_matrix(db_desc, "db_desc")
+    q = as_float_matrix(q_desc, "q_desc", dim=db.shape[1])
+    k = check_int(k, "k", minimum=1)
+    if k > db.shape[0]:
+        raise ValueError(f"k={k} is larger than the database ({db.shape[0]} descriptors); "
+                         f"use k <= {db.shape[0]}")
+    norms = np.linalg.norm(db, axis=1)
+    if np.abs(norms - 1).max() > 1e-3 or np.abs(np.linalg.norm(q, axis=1) - 1).max() > 1e-3:
+        raise ValueError("descriptors must be L2-normalised (unit rows); "
+                         "apply torch.nn.functional.normalize(x, dim=1) or faiss.normalize_L2 first")
+    index = faiss.IndexFlatIP(db.shape[1])
+    index.add(db)
+    sims, idx = index.search(q, k)
+    dist = np.maximum(2.0 - 2.0 * sims, 0.0).astype(np.float32)
+    return dist, idx.astype(np.int64)
+
+
+def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[int] = (1, 5, 10, 20)) -> dict[int, float]:
+    """Recall@N for each N in ``ns``: a query counts at N if any of its first N predictions is a positive.
+
+    ``predictions`` is the (num_queries, k) index array from :func:`retrieve`; ``positives`` the list
+    from :func:`positives_within`. Queries without any positive are excluded (with a warning).
+    Returns ``{N: recall}`` with recall in [0, 1].
+    """
+    pred = np.asarray(predictions)
+    if pred.ndim != 2 or not np.issubdtype(pred.dtype, np.integer):
+        raise ValueError(f"predictions must be a 2-D integer array (num_queries, k), got shape "
+                         f"{pred.shape} and dtype {pred.dtype}")
+    if len(positives) != pred.shape[0]:
+        raise ValueError(f"positives has {len(positives)} entries but predictions has {pred.shape[0]} rows; "
+                         f"they must describe the same queries")
+    ns = [check_int(n, "N in ns") for n in ns]
+    if not ns:
+        raise ValueError("ns is empty: give at least one N, e.g. ns=(1, 5, 10)")
+    if max(ns) > pred.shape[1]:
+        raise ValueError(f"N={max(ns)} needs at least {max(ns)} predictions per query, got {pred.shape[1]}; "
+                         f"retrieve with k >= {max(ns)}")
+    has_pos = np.array([len(p) > 0 for p in positives])
+    if not has_pos.any():
+        raise ValueError("no query has a positive: check the radius and that database and queries overlap")
+    if not has_pos.all():
+        warnings.warn(f"{int((~has_pos).sum())} of {len(positives)} queries have no positive within the "
+                      f"radius and are excluded from Recall@N", stacklevel=2)
+    # Vectorised membership test: encode (query, db index) pairs as one int64 key each.
+    lengths = np.array([len(p) for p in positives], dtype=np.int64)
+    pos_flat = np.concatenate([np.asarray(p, dtype=np.int64).ravel() for p in positives])
+    width = int(max(pred.max(initial=0), pos_flat.max(initial=0))) + 1
+    pos_keys = np.repeat(np.arange(len(positives), dtype=np.int64), lengths) * width + pos_flat
+    pred_keys = np.arange(pred.shape[0], dtype=np.int64)[:, None] * width + pred
+    hits = np.isin(pred_keys, pos_keys) & (pred >= 0)
+    # first rank at which a positive appears (k if none)
+    first = np.where(hits.any(axis=1), hits.argmax(axis=1), pred.shape[1])[has_pos]
+    return {n: float(np.mean(first < n)) for n in ns}
+
+
+def images_to_tensor(images) -> torch.Tensor:
+    """uint8 images (N, H, W, 3) -> float tensor (N, 3, H, W), scaled to [0, 1] then ImageNet-normalised."""
+    if isinstance(images, torch.Tensor):
+        images = images.numpy()
+    arr = np.asarray(images)
+    if arr.ndim != 4 or arr.shape[-1] != 3:
+        raise ValueError(f"images must be (N, H, W, 3) uint8, got shape {arr.shape}")
+    if arr.dtype != np.uint8:
+        raise ValueError(f"images must be uint8 in [0, 255], got dtype {arr.dtype}")
+    x = torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2).float().div_(255.0)
+    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    return (x - mean) / std
+
+
+@torch.no_grad()
+def compute_descriptors(model: torch.nn.Module, images, batch_size: int = 256, device=None) -> np.ndarray:
+    """Run ``model`` in eval mode over uint8 images (N, H, W, 3) and return float32 descriptors (N, D).
+
+    The model's training/eval mode is restored afterwards.
+    """
+    batch_size = check_int(batch_size, "batch_size")
+    arr = np.asarray(images)
+    if arr.ndim != 4 or arr.shape[0] == 0:
+        raise ValueError(f"images must be a non-empty (N, H, W, 3) array, got shape {arr.shape}")
+    if device is None:
+        device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    out = []
+    try:
+        for start in range(0, arr.shape[0], batch_size):
+            x = images_to_tensor(arr[start:start + batch_size]).to(device)
+            out.append(model(x).float().cpu())
+    finally:
+        model.train(was_training)
+    return torch.cat(out).numpy().astype(np.float32)
+
+
+def raw_pixel_descriptors(images) -> np.ndarray:
+    """The simplest global descriptor: the flattened image (pixels scaled to [0, 1]), L2-normalised."""
+    arr = np.asarray(images)
+    if arr.ndim != 4 or arr.shape[0] == 0:
+        raise ValueError(f"images must be a non-empty (N, H, W, C) array, got shape {arr.shape}")
+    x = arr.reshape(arr.shape[0], -1).astype(np.float32) / 255.0
+    norms = np.linalg.norm(x, axis=1, keepdims=True)
+    return x / np.maximum(norms, 1e-12)
+
+
+def evaluate_descriptors(db_desc, q_desc, db_utm, q_utm, radius: float,
+                         ns: Sequence[int] = (1, 5, 10, 20)) -> dict[int, float]:
+    """Positives + retrieval + Recall@N in one call (what every notebook reports)."""
+    db = as_float_matrix(db_desc, "db_desc")
+    k = min(max(ns), db.shape[0])
+    _, idx = retrieve(db, q_desc, k)
+    pos = positives_within(db_utm, q_utm, radius)
+    return recall_at_n(idx, pos, [n for n in ns if n <= k])
+
+
+def evaluate_model(model: torch.nn.Module, split, ns: Sequence[int] = (1, 5, 10, 20),
+                   batch_size: int = 256) -> dict[int, float]:
+    """Recall@N of ``model`` on a dataset split (an object with db/q images, UTM and ``pos_radius``)."""
+    db = compute_descriptors(model, split.db_images, batch_size)
+    q = compute_descriptors(model, split.q_images, batch_size)
+    return evaluate_descriptors(db, q, split.db_utm, split.q_utm, split.pos_radius, ns)
