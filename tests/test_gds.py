@@ -1,0 +1,310 @@
+"""Tests for vpr_nb.gds: GDS profile, mis-ordering probability, top-k order agreement."""
+import math
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from scipy.stats import kendalltau  # noqa: E402
+
+from vpr_nb.gds import (GDSProfile, gds_profile, misordering_matrix,  # noqa: E402
+                        misordering_probability, topk_order_agreement)
+
+
+def far_pairs(specs):
+    """Isolated image pairs: for each (geo, desc) one pair ``geo`` m apart, descriptor distance ``desc``.
+
+    Pairs are 1 km from each other, so no other pair is within any max_distance used here.
+    """
+    utm, desc = [], []
+    for k, (g, v) in enumerate(specs):
+        utm += [(1000.0 * k, 0.0), (1000.0 * k + g, 0.0)]
+        desc += [(0.0, 0.0), (v, 0.0)]
+    return np.array(desc, dtype=np.float32), np.array(utm)
+
+
+def brute_pairs(qd, dbd, qu, du, max_distance, all_pairs):
+    """Reference pair list from dense matrices (fine for small N)."""
+    geo = np.linalg.norm(qu[:, None] - du[None], axis=2)
+    desc = np.linalg.norm(qd[:, None].astype(np.float64) - dbd[None], axis=2)
+    mask = geo <= max_distance
+    if all_pairs:
+        mask &= np.triu(np.ones_like(mask), 1).astype(bool)
+    return geo[mask], desc[mask]
+
+
+def reference_stats(geo, desc, max_distance, bin_width, qs):
+    nb = int(math.ceil(max_distance / bin_width))
+    count, mean, std = np.zeros(nb, int), np.full(nb, np.nan), np.full(nb, np.nan)
+    quant = {q: np.full(nb, np.nan) for q in qs}
+    for b in range(nb):
+        lo, hi = b * bin_width, (b + 1) * bin_width
+        sel = (geo >= lo) & ((geo < hi) if b < nb - 1 else (geo <= hi))
+        count[b] = sel.sum()
+        if count[b]:
+            mean[b], std[b] = desc[sel].mean(), desc[sel].std()
+            for q in qs:
+                quant[q][b] = np.quantile(desc[sel], q)
+    return count, mean, std, quant
+
+
+@pytest.fixture(scope="module")
+def world():
+    rng = np.random.default_rng(3)
+    utm = rng.uniform(0, 60, (300, 2))
+    desc = (rng.normal(size=(300, 8)) + utm[:, :1] / 20).astype(np.float32)
+    return desc, utm
+
+
+@pytest.mark.parametrize("mode", ["all", "query-db"])
+def test_profile_matches_dense_reference(world, mode):
+    desc, utm = world
+    qs = (0.1, 0.5, 0.9)
+    if mode == "all":
+        prof = gds_profile(desc, utm, 20.0, 2.5, "all", quantiles=qs, fit_range=(0, 15))
+        geo, dd = brute_pairs(desc, desc, utm, utm, 20.0, True)
+    else:
+        prof = gds_profile(desc[100:], utm[100:], 20.0, 2.5, query_descriptors=desc[:100],
+                           query_utm=utm[:100], quantiles=qs, fit_range=(0, 15))
+        geo, dd = brute_pairs(desc[:100], desc[100:], utm[:100], utm[100:], 20.0, False)
+    count, mean, std, quant = reference_stats(geo, dd, 20.0, 2.5, qs)
+    np.testing.assert_array_equal(prof.count, count)
+    np.testing.assert_allclose(prof.mean, mean, rtol=1e-5)
+    np.testing.assert_allclose(prof.std, std, rtol=1e-4)
+    for q in qs:
+        np.testing.assert_allclose(prof.quantiles[q], quant[q], rtol=1e-5)
+    np.testing.assert_allclose(prof.bin_edges, np.arange(9) * 2.5)
+    np.testing.assert_allclose(prof.bin_centers, np.arange(8) * 2.5 + 1.25)
+    # weighted least squares over bins with centre in [0, 15]: polyfit weights multiply residuals
+    fit = prof.bin_centers <= 15
+    slope, intercept = np.polyfit(prof.bin_centers[fit], mean[fit], 1, w=np.sqrt(count[fit]))
+    assert prof.slope == pytest.approx(slope, rel=1e-6)
+    assert prof.intercept == pytest.approx(intercept, rel=1e-6)
+    assert prof.pairs == mode
+
+
+def test_hand_made_slope_and_bins():
+    # descriptor distance = 0.02 * geographic distance, pairs exactly at the bin centres
+    desc, utm = far_pairs([(0.5, 0.01), (1.5, 0.03), (2.5, 0.05), (2.5, 0.05)])
+    prof = gds_profile(desc, utm, 3.0, 1.0, "all", fit_range=(0, 3))
+    np.testing.assert_array_equal(prof.count, [1, 1, 2])
+    np.testing.assert_allclose(prof.mean, [0.01, 0.03, 0.05], rtol=1e-6)
+    np.testing.assert_allclose(prof.std, [0, 0, 0], atol=1e-7)
+    assert prof.slope == pytest.approx(0.02, rel=1e-5)
+    assert prof.intercept == pytest.approx(0.0, abs=1e-6)
+
+
+def test_bin_boundaries():
+    # 1.0 m goes to [1, 2); exactly max_distance goes to the last (closed) bin; 3.01 m is dropped
+    desc, utm = far_pairs([(1.0, 1.0), (3.0, 2.0), (3.01, 5.0), (0.0, 4.0)])
+    prof = gds_profile(desc, utm, 3.0, 1.0, "all", quantiles=(), fit_range=(0, 3))
+    np.testing.assert_array_equal(prof.count, [1, 1, 1])
+    np.testing.assert_allclose(prof.mean, [4.0, 1.0, 2.0])
+    assert prof.quantiles == {}
+
+
+def test_non_multiple_bin_width_and_empty_bins():
+    desc, utm = far_pairs([(0.2, 1.0), (2.4, 3.0)])
+    prof = gds_profile(desc, utm, 2.5, 1.0, "all", fit_range=(0, 3))
+    np.testing.assert_allclose(prof.bin_edges, [0, 1, 2, 3])
+    np.testing.assert_array_equal(prof.count, [1, 0, 1])
+    assert np.isnan(prof.mean[1]) and np.isnan(prof.std[1]) and np.isnan(prof.quantiles[0.5][1])
+    # line through (0.5, 1) and (2.5, 3): slope 1, intercept 0.5
+    assert prof.slope == pytest.approx(1.0) and prof.intercept == pytest.approx(0.5)
+
+
+def test_fewer_than_two_fit_bins_gives_nan_slope():
+    desc, utm = far_pairs([(0.5, 1.0), (4.5, 3.0)])
+    with pytest.warns(UserWarning, match="fit_range"):
+        prof = gds_profile(desc, utm, 5.0, 1.0, "all", fit_range=(0, 2))
+    assert math.isnan(prof.slope) and math.isnan(prof.intercept)
+
+
+def test_keep_pairs_sorted_by_bin_then_distance(world):
+    desc, utm = world
+    prof = gds_profile(desc, utm, 10.0, 2.0, "all", keep_pairs=True)
+    geo, dd = brute_pairs(desc, desc, utm, utm, 10.0, True)
+    assert len(prof.pair_geo) == len(geo) == prof.count.sum()
+    np.testing.assert_allclose(np.sort(prof.pair_desc), np.sort(dd), rtol=1e-5)
+    b = np.minimum(np.floor(prof.pair_geo / 2.0), 4)
+    assert np.all(np.diff(b) >= 0)
+    same = np.diff(b) == 0
+    assert np.all(np.diff(prof.pair_desc)[same] >= 0)
+    assert gds_profile(desc, utm, 10.0, 2.0, "all").pair_desc is None
+
+
+def test_misordering_gaussian_and_empirical_by_hand():
+    # bin [0,1): distances {1, 3} (mean 2, std 1); bin [2,3): {2, 4} (mean 3, std 1)
+    desc, utm = far_pairs([(0.5, 1.0), (0.5, 3.0), (2.5, 2.0), (2.5, 4.0)])
+    prof = gds_profile(desc, utm, 3.0, 1.0, "all", keep_pairs=True, fit_range=(0, 3))
+    expected = 0.5 * (1 + math.erf((2 - 3) / math.sqrt(2) / math.sqrt(2)))
+    assert misordering_probability(prof, 0.2, 2.7) == pytest.approx(expected, rel=1e-6)
+    # only (x1=3, x2=2) has the farther pair closer in descriptor space: 1 of 4
+    assert misordering_probability(prof, 0.2, 2.7, "empirical") == pytest.approx(0.25)
+
+
+def test_misordering_ties_count_half_and_zero_std():
+    desc, utm = far_pairs([(0.5, 2.0), (2.5, 2.0), (2.5, 1.0)])
+    prof = gds_profile(desc, utm, 3.0, 1.0, "all", keep_pairs=True, fit_range=(0, 3))
+    # x1 = {2}; x2 = {1, 2}: 1 < 2 counts 1, the tie counts 1/2 -> 1.5 / 2
+    assert misordering_probability(prof, 0.5, 2.5, "empirical") == pytest.approx(0.75)
+    desc, utm = far_pairs([(0.5, 2.0), (2.5, 1.0)])
+    prof = gds_profile(desc, utm, 3.0, 1.0, "all", fit_range=(0, 3))
+    assert misordering_probability(prof, 0.5, 2.5) == 1.0  # zero std: a certain mis-ordering
+
+
+def test_empirical_matches_brute_force(world):
+    desc, utm = world
+    prof = gds_profile(desc, utm, 20.0, 4.0, "all", keep_pairs=True)
+    start = np.concatenate([[0], np.cumsum(prof.count)])
+    x1 = prof.pair_desc[start[0]:start[1]].astype(np.float64)
+    x2 = prof.pair_desc[start[4]:start[5]].astype(np.float64)
+    ref = ((x2[None, :] < x1[:, None]).sum() + 0.5 * (x2[None, :] == x1[:, None]).sum()) / (len(x1) * len(x2))
+    assert misordering_probability(prof, 1.0, 17.0, "empirical") == pytest.approx(ref, rel=1e-12)
+
+
+@pytest.mark.parametrize("method", ["gaussian", "empirical"])
+def test_misordering_matrix(world, method):
+    desc, utm = world
+    prof = gds_profile(desc, utm, 20.0, 4.0, "all", keep_pairs=True)
+    ds = [1.0, 5.0, 9.0, 17.0]
+    m = misordering_matrix(prof, ds, method=method)
+    assert m.shape == (4, 4)
+    np.testing.assert_allclose(np.diag(m), 0.5)
+    np.testing.assert_allclose(m + m.T, 1.0, atol=1e-12)
+    assert m[0, 3] == pytest.approx(misordering_probability(prof, 1.0, 17.0, method))
+
+
+def test_plot_draws_mean_band_and_dashed_fit(world):
+    desc, utm = world
+    prof = gds_profile(desc, utm, 20.0, 2.0, "all")
+    fig, ax = plt.subplots()
+    assert prof.plot(ax=ax, label="model", color="C3") is ax
+    lines = ax.get_lines()
+    assert len(lines) == 2 and lines[1].get_linestyle() == "--"
+    np.testing.assert_allclose(lines[0].get_ydata(), prof.mean)
+    assert len(ax.collections) == 1  # the +-1 std band
+    assert ax.get_xlabel() == "geographic distance (m)"
+    plt.close(fig)
+    ax2 = prof.plot()
+    assert ax2.get_legend() is None
+    plt.close(ax2.figure)
+
+
+def test_topk_order_agreement_sorted_and_reversed():
+    du = np.stack([np.arange(10.0), np.zeros(10)], 1)
+    dbd = (np.arange(10.0)[:, None] * 0.1 * np.array([[1.0, 0.0]])).astype(np.float32)
+    qu = np.zeros((2, 2))
+    qd = np.array([[0.0, 0.0], [1.0, 0.0]], dtype=np.float32)  # 2nd query looks like the far end
+    res = topk_order_agreement(qd, dbd, qu, du, k=5)
+    np.testing.assert_array_equal(res.topk, [[0, 1, 2, 3, 4], [9, 8, 7, 6, 5]])
+    np.testing.assert_allclose(res.topk_geo[1], [9, 8, 7, 6, 5])
+    np.testing.assert_allclose(res.fraction_correct, [1.0, 0.0])
+    np.testing.assert_allclose(res.kendall_tau, [1.0, -1.0])
+    assert res.mean_fraction_correct == pytest.approx(0.5)
+    assert res.mean_kendall_tau == pytest.approx(0.0)
+
+
+def test_topk_order_agreement_matches_scipy_with_ties():
+    rng = np.random.default_rng(1)
+    du = rng.integers(0, 5, (60, 2)).astype(float)  # integer grid: many tied distances
+    dbd = rng.normal(size=(60, 6)).astype(np.float32)
+    qu = rng.integers(0, 5, (15, 2)).astype(float)
+    qd = rng.normal(size=(15, 6)).astype(np.float32)
+    res = topk_order_agreement(qd, dbd, qu, du, k=8)
+    for q in range(15):
+        geo = res.topk_geo[q]
+        ref = kendalltau(np.arange(8), geo).statistic
+        if np.isnan(ref):
+            assert np.isnan(res.kendall_tau[q])
+        else:
+            assert res.kendall_tau[q] == pytest.approx(ref)
+        ok = sum(geo[a] <= geo[b] for a in range(8) for b in range(a + 1, 8))
+        assert res.fraction_correct[q] == pytest.approx(ok / 28)
+    d = np.linalg.norm(qd[:, None].astype(np.float64) - dbd[None], axis=2)
+    np.testing.assert_array_equal(np.sort(res.topk, 1), np.sort(np.argsort(d, 1)[:, :8], 1))
+
+
+def test_topk_all_tied_gives_nan_tau():
+    du = np.array([[1.0, 0], [0, 1.0], [-1.0, 0]])
+    res = topk_order_agreement(np.zeros((1, 2)), np.eye(3, 2), np.zeros((1, 2)), du, k=3)
+    assert np.isnan(res.kendall_tau[0]) and np.isnan(res.mean_kendall_tau)
+    assert res.fraction_correct[0] == 1.0
+
+
+# ----------------------------------------------------------------------------- bad inputs
+def test_profile_bad_inputs(world):
+    desc, utm = world
+    with pytest.raises(ValueError, match="pairs must be one of"):
+        gds_profile(desc, utm, 10, 1, "pairs")
+    with pytest.raises(ValueError, match="needs query_descriptors"):
+        gds_profile(desc, utm, 10, 1)
+    with pytest.raises(ValueError, match="drop query_descriptors"):
+        gds_profile(desc, utm, 10, 1, "all", query_descriptors=desc, query_utm=utm)
+    with pytest.raises(ValueError, match="one position per image"):
+        gds_profile(desc, utm[:-1], 10, 1, "all")
+    with pytest.raises(ValueError, match="query_utm has"):
+        gds_profile(desc, utm, 10, 1, query_descriptors=desc, query_utm=utm[:-1])
+    with pytest.raises(ValueError, match="must have 8 columns"):
+        gds_profile(desc, utm, 10, 1, query_descriptors=desc[:, :4], query_utm=utm)
+    bad = desc.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        gds_profile(bad, utm, 10, 1, "all")
+    with pytest.raises(ValueError, match="bin_width must be positive"):
+        gds_profile(desc, utm, 10, 0, "all")
+    with pytest.raises(ValueError, match="max_distance must be positive"):
+        gds_profile(desc, utm, -1, 1, "all")
+    with pytest.raises(ValueError, match="must not exceed"):
+        gds_profile(desc, utm, 10, 20, "all")
+    with pytest.raises(ValueError, match="fit_range"):
+        gds_profile(desc, utm, 10, 1, "all", fit_range=(5, 1))
+    with pytest.raises(ValueError, match="fit_range"):
+        gds_profile(desc, utm, 10, 1, "all", fit_range=3)
+    with pytest.raises(ValueError, match="quantiles"):
+        gds_profile(desc, utm, 10, 1, "all", quantiles=(0.5, 1.5))
+    with pytest.raises(ValueError, match="at least two"):
+        gds_profile(desc[:1], utm[:1], 10, 1, "all")
+    with pytest.raises(ValueError, match="no image pair"):
+        gds_profile(desc[:2], np.array([[0.0, 0], [100, 0]]), 10, 1, "all")
+
+
+def test_misordering_bad_inputs():
+    desc, utm = far_pairs([(0.5, 1.0), (2.5, 2.0)])
+    prof = gds_profile(desc, utm, 3.0, 1.0, "all", fit_range=(0, 3))
+    with pytest.raises(ValueError, match="d1 must be smaller"):
+        misordering_probability(prof, 2.5, 0.5)
+    with pytest.raises(ValueError, match="empty bin"):
+        misordering_probability(prof, 0.5, 1.5)
+    with pytest.raises(ValueError, match="beyond"):
+        misordering_probability(prof, 0.5, 4.0)
+    with pytest.raises(ValueError, match="d1 must be non-negative"):
+        misordering_probability(prof, -1.0, 2.5)
+    with pytest.raises(ValueError, match="keep_pairs=True"):
+        misordering_probability(prof, 0.5, 2.5, "empirical")
+    with pytest.raises(ValueError, match="method must be"):
+        misordering_probability(prof, 0.5, 2.5, "exact")
+    with pytest.raises(ValueError, match="GDSProfile"):
+        misordering_probability({"mean": 1}, 0.5, 2.5)
+    with pytest.raises(ValueError, match="non-empty 1-D"):
+        misordering_matrix(prof, [])
+    with pytest.raises(ValueError, match="empty bin"):
+        misordering_matrix(prof, [0.5, 1.5])
+    assert isinstance(prof, GDSProfile)
+
+
+def test_topk_bad_inputs():
+    d = np.zeros((5, 3), np.float32)
+    u = np.zeros((5, 2))
+    with pytest.raises(ValueError, match="k must be <= 5"):
+        topk_order_agreement(d, d, u, u, k=6)
+    with pytest.raises(ValueError, match="k must be >= 2"):
+        topk_order_agreement(d, d, u, u, k=1)
+    with pytest.raises(ValueError, match="q_utm has 4 rows"):
+        topk_order_agreement(d, d, u[:4], u, k=2)
+    with pytest.raises(ValueError, match="db_utm has 4 rows"):
+        topk_order_agreement(d, d, u, u[:4], k=2)
+    with pytest.raises(ValueError, match="must have 3 columns"):
+        topk_order_agreement(d, d[:, :2], u, u, k=2)

@@ -1,0 +1,445 @@
+"""Geographic Distance Sensitivity (GDS) of a VPR embedding.
+
+CliqueMining (Izquierdo & Civera, ECCV 2024) argues that a VPR descriptor should keep sorting
+images correctly *at small geographic distances*: among the top-k retrievals of a query, the
+image taken 5 m away should be closer in descriptor space than the one taken 20 m away. The
+paper plots, for image pairs binned by their geographic distance, the descriptor distance
+(mean and spread, its Fig. 1). No public code for that analysis exists, so this module defines
+it precisely:
+
+Pair set
+    ``pairs="query-db"``: every (query, database) pair whose geographic distance is
+    ``<= max_distance``. ``pairs="all"``: every unordered pair ``i < j`` of one image set with
+    geographic distance ``<= max_distance``. Pairs are found with a k-d tree range search on the
+    2-D UTM positions, so memory is O(number of pairs), never O(N^2).
+Distances
+    geographic distance = Euclidean distance of the UTM (easting, northing) positions, in metres;
+    descriptor distance = plain (unsquared) Euclidean distance ``||a - b||_2`` of the descriptors
+    (for L2-normalised descriptors it lies in [0, 2] and equals ``sqrt(2 - 2 cos)``).
+Bins
+    ``B = ceil(max_distance / bin_width)`` bins of width ``bin_width`` starting at 0 m:
+    bin ``b`` holds pairs with geographic distance in ``[b*w, (b+1)*w)``; the last bin is closed
+    and also holds pairs at exactly ``max_distance``. ``bin_centers = (b + 0.5) * w``.
+Per-bin statistics
+    ``count``, ``mean`` and population standard deviation ``std`` (ddof = 0) of the descriptor
+    distance, and the requested ``quantiles`` (numpy's ``"linear"`` method). Empty bins hold NaN.
+Band
+    the plot shades ``mean +- 1 std``.
+Slope (units: descriptor-distance units per metre)
+    weighted least-squares line ``mean_b ~ intercept + slope * center_b`` over the non-empty bins
+    whose centre lies in ``fit_range`` (inclusive), with weights ``count_b``. This equals the
+    ordinary least-squares fit over the raw pairs with each geographic distance replaced by its
+    bin centre. A larger slope means the embedding separates near from far places better, i.e.
+    a higher geographic distance sensitivity.
+Mis-ordering probability
+    ``P(D(d2) < D(d1))`` for ``d1 < d2``: the probability that a pair taken ``d2`` metres apart
+    gets a *smaller* descriptor distance than a pair taken ``d1`` metres apart, so that the farther
+    image is ranked first. ``"gaussian"`` models each bin as a normal distribution,
+    ``Phi((mu1 - mu2) / sqrt(sigma1^2 + sigma2^2))``; ``"empirical"`` compares every sample of the
+    two bins exactly (ties count one half).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Sequence
+
+import faiss
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.special import ndtr
+
+from vpr_nb._checks import as_float_matrix, as_utm, check_int, check_positive
+
+_PAIR_MODES = ("query-db", "all")
+_METHODS = ("gaussian", "empirical")
+_CHUNK_FLOATS = 1 << 17  # floats per temporary (512 KiB, cache-sized) in the chunked loops
+
+
+@dataclass(frozen=True, eq=False)
+class GDSProfile:
+    """Descriptor distance as a function of geographic distance (see the module docstring).
+
+    Attributes:
+        bin_edges: ``(B + 1,)`` bin edges in metres.
+        bin_centers: ``(B,)`` bin centres in metres.
+        count: ``(B,)`` number of pairs per bin.
+        mean: ``(B,)`` mean descriptor distance per bin (NaN for empty bins).
+        std: ``(B,)`` population standard deviation per bin (NaN for empty bins).
+        quantiles: ``{q: (B,) array}`` descriptor-distance quantiles per bin.
+        slope: fitted descriptor-distance units per metre over ``fit_range`` (NaN if < 2 bins).
+        intercept: descriptor distance of the fitted line at 0 m.
+        pairs: ``"query-db"`` or ``"all"``.
+        fit_range: ``(lo, hi)`` metres used for the fit.
+        pair_geo: ``(P,)`` geographic distance of every pair (only with ``keep_pairs=True``),
+            sorted by bin, then by descriptor distance.
+        pair_desc: ``(P,)`` descriptor distance of every pair, in the same order.
+    """
+
+    bin_edges: np.ndarray
+    bin_centers: np.ndarray
+    count: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    quantiles: dict[float, np.ndarray]
+    slope: float
+    intercept: float
+    pairs: str
+    fit_range: tuple[float, float]
+    pair_geo: np.ndarray | None = None
+    pair_desc: np.ndarray | None = None
+
+    @property
+    def bin_width(self) -> float:
+        """Width of every bin in metres."""
+        return float(self.bin_edges[1] - self.bin_edges[0])
+
+    def plot(self, ax=None, label: str | None = None, color=None):
+        """Draw the mean descriptor distance, a +-1 std band and the dashed fit line (Fig. 1 style).
+
+        Returns the matplotlib ``Axes``; x is geographic distance (m), y descriptor distance.
+        """
+        if ax is None:
+            import matplotlib.pyplot as plt
+
+            _, ax = plt.subplots(figsize=(5, 3.5))
+        (line,) = ax.plot(self.bin_centers, self.mean, color=color, label=label, lw=1.8)
+        color = line.get_color()
+        ax.fill_between(self.bin_centers, self.mean - self.std, self.mean + self.std,
+                        color=color, alpha=0.2, lw=0)
+        if np.isfinite(self.slope):
+            lo, hi = self.fit_range
+            x = np.array([lo, min(hi, float(self.bin_edges[-1]))])
+            ax.plot(x, self.intercept + self.slope * x, ls="--", color=color, lw=1.2)
+        ax.set_xlabel("geographic distance (m)")
+        ax.set_ylabel("descriptor distance (L2)")
+        if label is not None:
+            ax.legend()
+        return ax
+
+
+@dataclass(frozen=True, eq=False)
+class OrderAgreement:
+    """How well the top-k retrievals of each query are sorted by geographic distance.
+
+    Attributes:
+        topk: ``(Q, k)`` database indices retrieved per query, best first.
+        topk_geo: ``(Q, k)`` geographic distance (m) from the query to each retrieval.
+        fraction_correct: ``(Q,)`` fraction of retrieval pairs ``(a, b)``, ``a`` ranked before
+            ``b``, with ``geo(a) <= geo(b)``.
+        kendall_tau: ``(Q,)`` Kendall tau-b between rank and geographic distance (NaN when all
+            k retrievals are at the same distance).
+        mean_fraction_correct: mean of ``fraction_correct``.
+        mean_kendall_tau: mean of ``kendall_tau`` over queries where it is defined.
+    """
+
+    topk: np.ndarray
+    topk_geo: np.ndarray
+    fraction_correct: np.ndarray
+    kendall_tau: np.ndarray
+    mean_fraction_correct: float
+    mean_kendall_tau: float
+
+
+def _geo_pairs(db_utm: np.ndarray, q_utm: np.ndarray | None, max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index pairs ``(i, j)`` within ``max_distance`` and their geographic distances.
+
+    With ``q_utm`` the pairs are (query i, database j); without it, unordered pairs i < j of db.
+    """
+    db_tree = cKDTree(db_utm)
+    if q_utm is None:
+        ij = db_tree.query_pairs(max_distance, output_type="ndarray")
+        i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
+        src = db_utm
+    else:
+        sparse = cKDTree(q_utm).sparse_distance_matrix(db_tree, max_distance, output_type="ndarray")
+        i, j = sparse["i"].astype(np.int64), sparse["j"].astype(np.int64)
+        src = q_utm
+    geo = np.sqrt(((src[i] - db_utm[j]) ** 2).sum(axis=1))
+    keep = geo <= max_distance  # the tree's own rounding may differ from ours by one ulp
+    return i[keep], j[keep], geo[keep]
+
+
+def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Euclidean distances ``||a[i] - b[j]||`` computed in bounded-memory chunks."""
+    out = np.empty(len(i), dtype=np.float32)
+    chunk = max(1, _CHUNK_FLOATS // a.shape[1])
+    for s in range(0, len(i), chunk):
+        diff = a[i[s:s + chunk]] - b[j[s:s + chunk]]
+        out[s:s + chunk] = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    return out
+
+
+def _bin_index(geo: np.ndarray | float, bin_width: float, num_bins: int) -> np.ndarray:
+    """Bin of each geographic distance (the last bin is closed on the right)."""
+    return np.minimum(np.floor(np.asarray(geo) / bin_width).astype(np.int64), num_bins - 1)
+
+
+def _sort_by_bin_then_value(b: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Permutation sorting by bin, then by value (faster than ``np.lexsort`` for few bins)."""
+    order = np.argsort(values)
+    small = b.astype(np.int16) if b.max() < np.iinfo(np.int16).max else b  # radix sort for int16
+    return order[np.argsort(small[order], kind="stable")]
+
+
+def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+    """Weighted least-squares ``y ~ intercept + slope * x``; returns ``(slope, intercept)``."""
+    xm = np.average(x, weights=w)
+    ym = np.average(y, weights=w)
+    slope = float(np.sum(w * (x - xm) * (y - ym)) / np.sum(w * (x - xm) ** 2))
+    return slope, float(ym - slope * xm)
+
+
+def _bin_quantiles(sorted_desc: np.ndarray, count: np.ndarray, qs: Sequence[float]) -> dict[float, np.ndarray]:
+    """Per-bin quantiles (numpy "linear" method) of values sorted by (bin, value)."""
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    nonempty = count > 0
+    out = {}
+    for q in qs:
+        pos = start + q * np.maximum(count - 1, 0)
+        lo = np.floor(pos).astype(np.int64)
+        hi = np.minimum(lo + 1, start + count - 1)
+        frac = pos - lo
+        vals = np.full(len(count), np.nan)
+        lo_n, hi_n, f_n = lo[nonempty], hi[nonempty], frac[nonempty]
+        vals[nonempty] = sorted_desc[lo_n] * (1 - f_n) + sorted_desc[hi_n] * f_n
+        out[float(q)] = vals
+    return out
+
+
+def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: str = "query-db", *,
+                query_descriptors=None, query_utm=None, fit_range: tuple[float, float] = (0.0, 25.0),
+                quantiles: Sequence[float] = (0.1, 0.5, 0.9), keep_pairs: bool = False) -> GDSProfile:
+    """Bin every image pair by geographic distance and summarise its descriptor distance.
+
+    Implements the GDS analysis behind Fig. 1 of CliqueMining (Izquierdo & Civera, ECCV 2024),
+    with the pair set, bins, band and slope defined in the module docstring.
+
+    Args:
+        descriptors: ``(N, D)`` database descriptors (``pairs="query-db"``) or the image set
+            (``pairs="all"``).
+        utm: ``(N, 2)`` positions in metres, aligned with ``descriptors``.
+        max_distance: largest geographic distance (m) of a pair that is kept.
+        bin_width: width (m) of the geographic-distance bins.
+        pairs: ``"query-db"`` (needs ``query_descriptors`` and ``query_utm``) or ``"all"``.
+        query_descriptors: ``(Q, D)`` query descriptors for ``pairs="query-db"``.
+        query_utm: ``(Q, 2)`` query positions for ``pairs="query-db"``.
+        fit_range: ``(lo, hi)`` metres; bins whose centre lies in it are used for the slope.
+        quantiles: quantile levels in ``[0, 1]`` computed per bin.
+        keep_pairs: store every pair's (geographic, descriptor) distance, needed by
+            ``misordering_probability(..., method="empirical")``.
+
+    Returns:
+        A :class:`GDSProfile`.
+    """
+    if pairs not in _PAIR_MODES:
+        raise ValueError(f"pairs must be one of {_PAIR_MODES}, got {pairs!r}")
+    db = as_float_matrix(descriptors, "descriptors")
+    db_utm = as_utm(utm, "utm")
+    if len(db_utm) != len(db):
+        raise ValueError(f"utm has {len(db_utm)} rows but descriptors has {len(db)}: give one position per image")
+    max_distance = check_positive(max_distance, "max_distance")
+    bin_width = check_positive(bin_width, "bin_width")
+    if bin_width > max_distance:
+        raise ValueError(f"bin_width ({bin_width}) must not exceed max_distance ({max_distance})")
+    lo, hi = _check_fit_range(fit_range)
+    qs = tuple(quantiles)
+    for q in qs:
+        if not (isinstance(q, (int, float, np.floating)) and 0.0 <= float(q) <= 1.0):
+            raise ValueError(f"quantiles must be numbers in [0, 1], got {q!r}")
+    if pairs == "query-db":
+        if query_descriptors is None or query_utm is None:
+            raise ValueError('pairs="query-db" needs query_descriptors and query_utm; '
+                             'use pairs="all" to compare the images of one set with each other')
+        qd = as_float_matrix(query_descriptors, "query_descriptors", dim=db.shape[1])
+        q_utm = as_utm(query_utm, "query_utm")
+        if len(q_utm) != len(qd):
+            raise ValueError(f"query_utm has {len(q_utm)} rows but query_descriptors has {len(qd)}")
+    else:
+        if query_descriptors is not None or query_utm is not None:
+            raise ValueError('pairs="all" uses only descriptors/utm; drop query_descriptors and query_utm '
+                             'or use pairs="query-db"')
+        if len(db) < 2:
+            raise ValueError('pairs="all" needs at least two images')
+        qd, q_utm = db, None
+
+    i, j, geo = _geo_pairs(db_utm, q_utm, max_distance)
+    if len(geo) == 0:
+        raise ValueError(f"no image pair is within max_distance={max_distance} m; increase max_distance "
+                         "or check that utm is in metres")
+    desc = _pair_descriptor_distances(qd, db, i, j)
+    del i, j
+
+    num_bins = int(math.ceil(max_distance / bin_width - 1e-9))
+    edges = bin_width * np.arange(num_bins + 1, dtype=np.float64)
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    b = _bin_index(geo, bin_width, num_bins)
+    count = np.bincount(b, minlength=num_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.bincount(b, weights=desc, minlength=num_bins) / count
+        std = np.sqrt(np.bincount(b, weights=(desc - mean[b]) ** 2, minlength=num_bins) / count)
+
+    order = _sort_by_bin_then_value(b, desc) if (qs or keep_pairs) else None
+    quant = _bin_quantiles(desc[order], count, qs) if qs else {}
+
+    fit = (count > 0) & (centers >= lo) & (centers <= hi)
+    if fit.sum() >= 2:
+        slope, intercept = _weighted_line(centers[fit], mean[fit], count[fit].astype(np.float64))
+    else:
+        warnings.warn(f"fewer than two non-empty bins have their centre in fit_range={fit_range}; "
+                      "slope and intercept are NaN", stacklevel=2)
+        slope = intercept = float("nan")
+    return GDSProfile(bin_edges=edges, bin_centers=centers, count=count, mean=mean, std=std,
+                      quantiles=quant, slope=slope, intercept=intercept, pairs=pairs,
+                      fit_range=(lo, hi),
+                      pair_geo=geo[order] if keep_pairs else None,
+                      pair_desc=desc[order] if keep_pairs else None)
+
+
+def _check_fit_range(fit_range) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in fit_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"fit_range must be a pair (lo, hi) of metres, got {fit_range!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 <= lo < hi):
+        raise ValueError(f"fit_range must satisfy 0 <= lo < hi (finite), got {fit_range!r}")
+    return lo, hi
+
+
+def _check_profile(profile) -> GDSProfile:
+    if not isinstance(profile, GDSProfile):
+        raise ValueError(f"profile must be a GDSProfile from gds_profile(), got {type(profile).__name__}")
+    return profile
+
+
+def _bin_of_distance(profile: GDSProfile, d, name: str) -> int:
+    """Bin holding geographic distance ``d``; it must lie in the profile's range and be non-empty."""
+    d = check_positive(d, name, allow_zero=True)
+    if d > profile.bin_edges[-1]:
+        raise ValueError(f"{name}={d} m is beyond the profile's last bin edge ({profile.bin_edges[-1]} m); "
+                         "recompute the profile with a larger max_distance")
+    b = int(_bin_index(d, profile.bin_width, len(profile.count)))
+    if profile.count[b] == 0:
+        raise ValueError(f"{name}={d} m falls in an empty bin [{profile.bin_edges[b]}, {profile.bin_edges[b + 1]}) "
+                         "with no pairs; choose another distance or a wider bin_width")
+    return b
+
+
+def _prob_farther_ranked_first(profile: GDSProfile, b1: int, b2: int, method: str) -> float:
+    """``P(D_2 < D_1)`` for descriptor distances of pairs from bins ``b1`` and ``b2``."""
+    if method == "gaussian":
+        dm = profile.mean[b1] - profile.mean[b2]
+        s = math.sqrt(profile.std[b1] ** 2 + profile.std[b2] ** 2)
+        if s == 0.0:
+            return 0.5 if dm == 0 else float(dm > 0)
+        return float(ndtr(dm / s))
+    start = np.concatenate([[0], np.cumsum(profile.count)])
+    x1 = profile.pair_desc[start[b1]:start[b1 + 1]]  # sorted within each bin
+    x2 = profile.pair_desc[start[b2]:start[b2 + 1]]
+    right = np.searchsorted(x1, x2, side="right")
+    left = np.searchsorted(x1, x2, side="left")
+    greater = np.sum(len(x1) - right, dtype=np.float64)
+    ties = np.sum(right - left, dtype=np.float64)
+    return float((greater + 0.5 * ties) / (len(x1) * len(x2)))
+
+
+def _check_method(profile: GDSProfile, method: str) -> None:
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    if method == "empirical" and profile.pair_desc is None:
+        raise ValueError('method="empirical" needs the raw pair distances: build the profile with '
+                         'gds_profile(..., keep_pairs=True), or use method="gaussian"')
+
+
+def misordering_probability(profile: GDSProfile, d1: float, d2: float, method: str = "gaussian") -> float:
+    """Probability that a pair ``d2`` m apart looks more similar than a pair ``d1 < d2`` m apart.
+
+    ``P(D(d2) < D(d1))`` with ``D`` the descriptor distance of a pair taken from the profile bin
+    that contains each geographic distance. This is the probability of sorting two top-k
+    retrievals at those distances in the wrong order (the quantity CliqueMining relates to GDS).
+
+    Args:
+        profile: a :class:`GDSProfile` (``keep_pairs=True`` for ``method="empirical"``).
+        d1: geographic distance (m) of the nearer pair.
+        d2: geographic distance (m) of the farther pair, ``d2 > d1``.
+        method: ``"gaussian"``: ``Phi((mu1 - mu2) / sqrt(sigma1^2 + sigma2^2))`` from the bin
+            means/stds; ``"empirical"``: the exact fraction of sample pairs ``(x1, x2)`` with
+            ``x2 < x1`` (ties count 1/2), computed by sorting, O(n log n).
+    """
+    profile = _check_profile(profile)
+    _check_method(profile, method)
+    b1 = _bin_of_distance(profile, d1, "d1")
+    b2 = _bin_of_distance(profile, d2, "d2")
+    if not d1 < d2:
+        raise ValueError(f"d1 must be smaller than d2 (d1 is the nearer pair), got d1={d1}, d2={d2}")
+    return _prob_farther_ranked_first(profile, b1, b2, method)
+
+
+def misordering_matrix(profile: GDSProfile, distances: Sequence[float], method: str = "gaussian") -> np.ndarray:
+    """Matrix ``M[i, j] = P(D(distances[j]) < D(distances[i]))`` for a heatmap.
+
+    For ``distances[i] < distances[j]`` the entry is :func:`misordering_probability`;
+    ``M[j, i] = 1 - M[i, j]`` and the diagonal is 0.5.
+    """
+    profile = _check_profile(profile)
+    _check_method(profile, method)
+    ds = np.asarray(distances, dtype=np.float64)
+    if ds.ndim != 1 or len(ds) == 0:
+        raise ValueError(f"distances must be a non-empty 1-D list of metres, got shape {ds.shape}")
+    bins = [_bin_of_distance(profile, d, f"distances[{k}]") for k, d in enumerate(ds)]
+    n = len(bins)
+    out = np.empty((n, n))
+    for a in range(n):
+        for c in range(n):
+            out[a, c] = _prob_farther_ranked_first(profile, bins[a], bins[c], method)
+    return out
+
+
+def _order_stats(geo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``(Q, k)`` geo distances in rank order: fraction of correct pairs and tau-b."""
+    iu, ju = np.triu_indices(geo.shape[1], 1)  # pairs (a, b) with a ranked before b
+    n0 = len(iu)
+    concordant = np.empty(len(geo), dtype=np.int64)
+    discordant = np.empty(len(geo), dtype=np.int64)
+    chunk = max(1, _CHUNK_FLOATS // n0)
+    for s in range(0, len(geo), chunk):
+        sign = np.sign(geo[s:s + chunk, ju] - geo[s:s + chunk, iu])
+        concordant[s:s + chunk] = (sign > 0).sum(axis=1)
+        discordant[s:s + chunk] = (sign < 0).sum(axis=1)
+    ties = n0 - concordant - discordant
+    fraction = (concordant + ties) / n0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tau = (concordant - discordant) / np.sqrt(n0 * (n0 - ties).astype(np.float64))
+    return fraction, tau
+
+
+def topk_order_agreement(q_desc, db_desc, q_utm, db_utm, k: int = 10) -> OrderAgreement:
+    """Are the top-k retrievals of each query sorted by geographic distance?
+
+    Retrieves the ``k`` nearest database descriptors of every query (exact L2 search,
+    ``faiss.IndexFlatL2``). For each query, a pair of retrievals ``(a, b)`` with ``a`` ranked
+    before ``b`` is *correctly ordered* when ``geo(a) <= geo(b)``. Reports the fraction of
+    correctly ordered pairs and Kendall's tau-b between the retrieval rank and the geographic
+    distance (+1: perfectly sorted by distance, -1: reversed). This is the top-k sorting that
+    CliqueMining ties to the Geographic Distance Sensitivity.
+    """
+    qd = as_float_matrix(q_desc, "q_desc")
+    dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
+    qu = as_utm(q_utm, "q_utm")
+    du = as_utm(db_utm, "db_utm")
+    if len(qu) != len(qd):
+        raise ValueError(f"q_utm has {len(qu)} rows but q_desc has {len(qd)}")
+    if len(du) != len(dbd):
+        raise ValueError(f"db_utm has {len(du)} rows but db_desc has {len(dbd)}")
+    k = check_int(k, "k", minimum=2, maximum=len(dbd))
+    index = faiss.IndexFlatL2(dbd.shape[1])
+    index.add(dbd)
+    _, topk = index.search(qd, k)
+    topk = topk.astype(np.int64)
+    geo = np.sqrt(((du[topk] - qu[:, None, :]) ** 2).sum(axis=2))
+    fraction, tau = _order_stats(geo)
+    finite = np.isfinite(tau)
+    return OrderAgreement(topk=topk, topk_geo=geo, fraction_correct=fraction, kendall_tau=tau,
+                          mean_fraction_correct=float(fraction.mean()),
+                          mean_kendall_tau=float(tau[finite].mean()) if finite.any() else float("nan"))

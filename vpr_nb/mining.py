@@ -1,0 +1,476 @@
+"""Which images go into a training batch: CliqueMining, a random-place baseline, NetVLAD hard negatives.
+
+* :func:`clique_batches` -- CliqueMining (Izquierdo & Civera, ECCV 2024): batches of places that
+  are visually similar yet geographically separated, found as cliques of a geographic graph.
+* :func:`random_place_batches` -- the GSV-Cities baseline: random places, random images of each.
+* :func:`mine_triplets` -- NetVLAD (Arandjelovic et al., CVPR 2016) weakly supervised triplets:
+  best positive within 10 m, hardest negatives beyond 25 m, with a per-query negative cache.
+
+Every function takes a ``seed`` or a ``np.random.Generator`` and returns the same output for the
+same seed. Distances between geotags are Euclidean distances of UTM (easting, northing) in metres.
+"""
+from __future__ import annotations
+
+import multiprocessing
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vpr_nb._checks import as_float_matrix, as_utm, check_int, check_positive
+from vpr_nb.evaluation import positives_within
+
+_MIN_ANCHORS = 100  # a batch gives up after max(_MIN_ANCHORS, _ANCHORS_PER_PLACE * places) anchors
+_ANCHORS_PER_PLACE = 10
+
+
+# ----------------------------------------------------------------------------- input checks
+def _as_groups(groups, n: int | None) -> np.ndarray:
+    """Validate a 1-D array of non-negative integer group ids (one per image)."""
+    arr = np.asarray(groups)
+    if arr.ndim != 1:
+        raise ValueError(f"groups must be a 1-D array with one place-group id per image, got shape {arr.shape}")
+    if len(arr) == 0:
+        raise ValueError("groups is empty: give one place-group id per image")
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"groups must hold integers (place-group ids), got dtype {arr.dtype}")
+    if arr.min() < 0:
+        raise ValueError(f"groups must be non-negative ids, found {int(arr.min())}")
+    if n is not None and len(arr) != n:
+        raise ValueError(f"groups has {len(arr)} entries but utm has {n} rows: give one group id per image")
+    return arr.astype(np.int64)
+
+
+def _seed_sequences(seed, n: int) -> list[np.random.SeedSequence]:
+    """One independent SeedSequence per batch, derived from an int seed or a Generator."""
+    if isinstance(seed, np.random.Generator):
+        seed = int(seed.integers(2**63))
+    elif isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative int or a np.random.Generator, got {seed!r}")
+    return np.random.SeedSequence(int(seed)).spawn(n)
+
+
+def _as_rng(rng) -> np.random.Generator:
+    if isinstance(rng, np.random.Generator):
+        return rng
+    if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool) and rng >= 0:
+        return np.random.default_rng(int(rng))
+    raise ValueError(f"rng must be a np.random.Generator (or a non-negative int seed), got {rng!r}")
+
+
+def _dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Euclidean distance of broadcastable (..., 2) UTM arrays, in metres."""
+    return np.sqrt(((a - b) ** 2).sum(axis=-1))
+
+
+def _group_index(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(order, starts)``: the images of group ``g`` are ``order[starts[g]:starts[g + 1]]``."""
+    order = np.argsort(groups, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(np.bincount(groups))])
+    return order, starts
+
+
+# ----------------------------------------------------------------------------- CliqueMining
+def _grow_clique(clique: list[int], cand: list[int], adj, m: int) -> list[int] | None:
+    """Depth-first search for a clique of ``m`` nodes extending ``clique`` with nodes of ``cand``.
+
+    Every node of ``cand`` is adjacent to every node of ``clique``; ``adj(u)`` is u's neighbour set.
+    """
+    if len(clique) >= m:
+        return clique
+    for pos, u in enumerate(cand):
+        if len(clique) + len(cand) - pos < m:
+            return None
+        nu = adj(u)
+        found = _grow_clique(clique + [u], [w for w in cand[pos + 1:] if w in nu], adj, m)
+        if found is not None:
+            return found
+    return None
+
+
+class _CliqueMiner:
+    """The state shared by every batch of :func:`clique_batches` (picklable for worker processes)."""
+
+    def __init__(self, utm: np.ndarray, groups: np.ndarray, group_descriptors: np.ndarray,
+                 places_per_batch: int, images_per_place: int, threshold: float, similar_groups: int):
+        self.utm = utm
+        self.order, self.starts = _group_index(groups)
+        self.present = np.flatnonzero(np.diff(self.starts) > 0)  # group ids that have images
+        self.desc = group_descriptors[self.present]
+        self.sqnorm = np.einsum("ij,ij->i", self.desc, self.desc)
+        self.k_similar = min(similar_groups, len(self.present) - 1)
+        self.places = places_per_batch
+        self.m = images_per_place
+        self.threshold = threshold
+        self.max_anchors = max(_MIN_ANCHORS, _ANCHORS_PER_PLACE * places_per_batch)
+
+    def similar_groups(self, anchor: int, rng: np.random.Generator) -> np.ndarray:
+        """Anchor + ``k_similar`` groups drawn without replacement with P ∝ (max d - d).
+
+        ``d`` is the descriptor distance to the anchor over all present groups. Sampling uses the
+        exponential race (the k smallest ``E_j / w_j``), which has the law of successive draws
+        without replacement. Zero-weight groups (the farthest one; all of them when every distance
+        is equal) are drawn uniformly, only after every positive-weight group.
+        """
+        k = self.k_similar
+        d2 = self.sqnorm + self.sqnorm[anchor] - 2.0 * (self.desc @ self.desc[anchor])
+        d = np.sqrt(np.maximum(d2, 0.0))
+        w = d.max() - d
+        e = rng.standard_exponential(len(w))
+        w[anchor], e[anchor] = 0.0, np.inf  # the anchor is never drawn
+        pos = np.flatnonzero(w > 0)
+        if len(pos) >= k:
+            pick = pos[np.argpartition(e[pos] / w[pos], k - 1)[:k]] if k else pos[:0]
+        else:
+            zero = np.flatnonzero(w <= 0)
+            rest = k - len(pos)
+            pick = np.concatenate([pos, zero[np.argpartition(e[zero], rest - 1)[:rest]]])
+        return self.present[np.concatenate([[anchor], pick])]
+
+    def neighbours(self, pts: np.ndarray) -> list[np.ndarray]:
+        """For each point, the sorted indices of the other points closer than the threshold."""
+        n = len(pts)
+        ij = cKDTree(pts).query_pairs(self.threshold * (1 + 1e-9), output_type="ndarray")
+        ij = ij[_dist(pts[ij[:, 0]], pts[ij[:, 1]]) < self.threshold]
+        rows = np.concatenate([ij[:, 0], ij[:, 1]]).astype(np.int64)
+        cols = np.concatenate([ij[:, 1], ij[:, 0]]).astype(np.int64)
+        srt = np.argsort(rows * n + cols)
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))])
+        cols = cols[srt]
+        return [cols[indptr[v]:indptr[v + 1]] for v in range(n)]
+
+    def places_in_pool(self, pool: np.ndarray, blocked: np.ndarray, need: int,
+                       rng: np.random.Generator) -> list[np.ndarray]:
+        """Up to ``need`` places (arrays of ``m`` image indices) from the images in ``pool``.
+
+        Images closer than the threshold to a ``blocked`` position (images already in the batch)
+        are removed first. Then, scanning the pool in ascending image index, the first alive image
+        that belongs to a clique of >= m alive images gives a place: that clique is grown greedily
+        to a maximal clique, m random members are taken, and they and all their neighbours are
+        removed. An image that is in no such clique now never will be (the graph only shrinks),
+        so each image is visited once.
+        """
+        pts = self.utm[pool]
+        alive = np.ones(len(pool), dtype=bool)
+        if len(blocked):
+            alive &= ~(_dist(pts[:, None, :], blocked[None, :, :]) < self.threshold).any(axis=1)
+        nbrs = self.neighbours(pts)
+        sets: dict[int, set[int]] = {}
+
+        def adj(u: int) -> set[int]:
+            if u not in sets:
+                sets[u] = set(nbrs[u].tolist())
+            return sets[u]
+
+        found: list[np.ndarray] = []
+        for v in range(len(pool)):
+            if len(found) == need:
+                break
+            if not alive[v] or len(nbrs[v]) < self.m - 1:
+                continue
+            cand = nbrs[v][alive[nbrs[v]]].tolist()
+            clique = _grow_clique([v], cand, adj, self.m)
+            if clique is None:
+                continue
+            common = [u for u in cand if u not in clique and all(u in adj(c) for c in clique)]
+            while common:  # grow to a maximal clique, smallest index first
+                clique.append(common[0])
+                common = [u for u in common[1:] if u in adj(common[0])]
+            chosen = rng.choice(np.sort(clique), self.m, replace=False)
+            found.append(pool[chosen])
+            alive[chosen] = False
+            for c in chosen:
+                alive[nbrs[c]] = False
+        return found
+
+    def batch(self, index: int, seed: np.random.SeedSequence) -> np.ndarray:
+        """One ``(places, m)`` batch; raises ValueError when the data cannot fill it."""
+        rng = np.random.default_rng(seed)
+        places: list[np.ndarray] = []
+        blocked = np.empty((0, 2))
+        for _ in range(self.max_anchors):
+            anchor = int(rng.integers(len(self.present)))
+            groups = self.similar_groups(anchor, rng)
+            pool = np.sort(np.concatenate([self.order[self.starts[g]:self.starts[g + 1]] for g in groups]))
+            new = self.places_in_pool(pool, blocked, self.places - len(places), rng)
+            if new:
+                places += new
+                if len(places) == self.places:
+                    return np.stack(places)
+                blocked = self.utm[np.concatenate(places)]
+        raise ValueError(
+            f"could not fill batch {index}: found only {len(places)} of {self.places} places after "
+            f"{self.max_anchors} anchor groups. The data has too few places of >= {self.m} images "
+            f"pairwise < {self.threshold} m apart that are also >= {self.threshold} m from each other; "
+            "lower places_per_batch, images_per_place or same_place_threshold, or add more groups")
+
+
+_WORKER_MINER: _CliqueMiner | None = None
+
+
+def _init_worker(miner: _CliqueMiner) -> None:
+    global _WORKER_MINER
+    _WORKER_MINER = miner
+
+
+def _mine_in_worker(items: list[tuple[int, np.random.SeedSequence]]) -> np.ndarray:
+    return np.stack([_WORKER_MINER.batch(i, s) for i, s in items])
+
+
+def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images_per_place: int = 4,
+                   same_place_threshold: float = 25.0, similar_groups: int = 15, num_batches: int = 1,
+                   seed: int | np.random.Generator = 0, num_workers: int = 1) -> np.ndarray:
+    """CliqueMining batches (Izquierdo & Civera, ECCV 2024, Sec. 4 and ``create_dataset_part``).
+
+    Each batch is built as in the authors' code:
+
+    1. pick an *anchor* place-group uniformly among the groups that have images;
+    2. draw ``similar_groups`` other groups without replacement with probability proportional to
+       ``max_j d_j - d_i``, where ``d_i`` is the Euclidean distance between the descriptors of group
+       ``i`` and of the anchor (linear weights, anchor weight 0; if all weights are 0 the draw is
+       uniform), so visually similar groups are likely;
+    3. build the geographic graph on all images of these groups: an edge joins two images whose
+       UTM distance is ``< same_place_threshold``;
+    4. take a clique of ``>= images_per_place`` images as one place and keep ``images_per_place``
+       random members of it: they are pairwise closer than the threshold;
+    5. remove the chosen images *and every image within the threshold of them*, so that all
+       later places are ``>= same_place_threshold`` from every chosen image (hard negatives);
+    6. repeat 4-5 until the batch is full or no clique is left, then go back to 1 with a new
+       anchor and keep filling the same batch.
+
+    Differences from the original code:
+
+    * which clique: the original takes the first maximal clique of ``networkx.find_cliques``
+      (DFS order); here it is the maximal clique grown greedily (smallest index first) from the
+      smallest-index alive image that lies in a clique of ``>= images_per_place`` images;
+    * the original picks a new *city* per batch part and never meets the earlier places again;
+      here one image set is used, so images within the threshold of places already in the batch
+      are removed before each new anchor: every pair of places of a batch is ``>= threshold``
+      apart, across anchors too;
+    * the similar groups are drawn among the group ids that have images (the original also
+      draws ids with no image, whose zero descriptor rows give them a positive weight);
+    * the neighbourhood is built once per anchor with a k-d tree and an alive mask instead of a
+      new ``networkx.Graph`` from a dense adjacency matrix for every place;
+    * batches are reproducible: batch ``b`` uses ``SeedSequence(seed).spawn(num_batches)[b]``,
+      so the output does not depend on ``num_workers`` (the original seeds from pid and time).
+
+    The group descriptors are used as given: the original computes them once, offline, with the
+    pre-trained model. To refresh them every E epochs, the training loop recomputes the
+    descriptors of the current model and calls this function again.
+
+    Args:
+        utm: ``(N, 2)`` UTM positions in metres, one per image.
+        groups: ``(N,)`` non-negative place-group id of each image (MSLS ``unique_cluster``).
+        group_descriptors: ``(G, D)`` one descriptor per group id ``0..G-1``, ``G > max(groups)``
+            (rows of ids without images are ignored and may be zero).
+        places_per_batch: places per batch (30 in the paper).
+        images_per_place: images per place, >= 2 (4 in the paper).
+        same_place_threshold: metres; images closer than this are the same place (25 in the paper).
+        similar_groups: number of visually similar groups drawn besides the anchor (15).
+        num_batches: number of batches.
+        seed: int seed (or a Generator that provides one).
+        num_workers: processes (``multiprocessing`` "spawn" context) when > 1; same output.
+
+    Returns:
+        int64 array ``(num_batches, places_per_batch, images_per_place)`` of image indices.
+
+    Raises:
+        ValueError: on bad inputs, or when a batch cannot be filled after
+            ``max(100, 10 * places_per_batch)`` anchors (too few separated places in the data).
+    """
+    utm = as_utm(utm, "utm")
+    groups = _as_groups(groups, len(utm))
+    desc = as_float_matrix(group_descriptors, "group_descriptors")
+    if len(desc) <= groups.max():
+        raise ValueError(f"group_descriptors has {len(desc)} rows but groups uses ids up to {int(groups.max())}: "
+                         f"give one row per group id 0..{int(groups.max())} (zero rows for unused ids)")
+    places_per_batch = check_int(places_per_batch, "places_per_batch")
+    images_per_place = check_int(images_per_place, "images_per_place", minimum=2)
+    threshold = check_positive(same_place_threshold, "same_place_threshold")
+    similar_groups = check_int(similar_groups, "similar_groups", minimum=0)
+    num_batches = check_int(num_batches, "num_batches")
+    num_workers = check_int(num_workers, "num_workers")
+    if len(utm) < places_per_batch * images_per_place:
+        raise ValueError(f"a batch needs {places_per_batch * images_per_place} distinct images but there are "
+                         f"only {len(utm)}; lower places_per_batch or images_per_place")
+    seeds = _seed_sequences(seed, num_batches)
+    miner = _CliqueMiner(utm, groups, desc, places_per_batch, images_per_place, threshold, similar_groups)
+    if num_workers == 1:
+        return np.stack([miner.batch(i, s) for i, s in enumerate(seeds)]).astype(np.int64)
+    chunks = [c for c in np.array_split(np.arange(num_batches), 4 * num_workers) if len(c)]
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(num_workers, initializer=_init_worker, initargs=(miner,)) as pool:
+        parts = pool.map(_mine_in_worker, [[(int(i), seeds[i]) for i in c] for c in chunks])
+    return np.concatenate(parts).astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- random baseline
+def random_place_batches(groups, places_per_batch: int, images_per_place: int = 4, *,
+                         num_batches: int = 1, seed: int | np.random.Generator = 0) -> np.ndarray:
+    """GSV-Cities-style batches: random places, random images of each place.
+
+    Each batch draws ``places_per_batch`` distinct groups uniformly among the groups with at
+    least ``images_per_place`` images, then ``images_per_place`` distinct random images of each.
+    Unlike :func:`clique_batches` nothing keeps two places of a batch geographically apart.
+
+    Returns:
+        int64 array ``(num_batches, places_per_batch, images_per_place)`` of image indices.
+    """
+    groups = _as_groups(groups, None)
+    places_per_batch = check_int(places_per_batch, "places_per_batch")
+    images_per_place = check_int(images_per_place, "images_per_place", minimum=2)
+    num_batches = check_int(num_batches, "num_batches")
+    rng = _as_rng(seed)
+    order, starts = _group_index(groups)
+    eligible = np.flatnonzero(np.diff(starts) >= images_per_place)
+    if len(eligible) < places_per_batch:
+        raise ValueError(f"only {len(eligible)} groups have >= {images_per_place} images but a batch needs "
+                         f"{places_per_batch} distinct places; lower places_per_batch or images_per_place")
+    out = np.empty((num_batches, places_per_batch, images_per_place), dtype=np.int64)
+    for b in range(num_batches):
+        for p, g in enumerate(rng.choice(eligible, places_per_batch, replace=False)):
+            out[b, p] = rng.choice(order[starts[g]:starts[g + 1]], images_per_place, replace=False)
+    return out
+
+
+# ----------------------------------------------------------------------------- NetVLAD triplets
+@dataclass(frozen=True, eq=False)
+class TripletBatch:
+    """Mined NetVLAD tuples ``(query, positive, negatives)``, one row per requested query.
+
+    Attributes:
+        query: ``(B,)`` query indices (into the query arrays).
+        positive: ``(B,)`` database index of the best positive, -1 for invalid queries.
+        negatives: ``(B, M)`` database indices of the M hardest negatives, hardest first
+            (-1 for queries without a positive or with fewer than M negatives).
+        negative_mask: ``(B, M)`` True where the negative violates the margin
+            (all True when ``margin`` is None; all False for invalid queries).
+        geo_qp: ``(B,)`` query-positive distance in metres (NaN for invalid queries).
+        valid: ``(B,)`` True for queries to train on.
+        neg_cache: ``{query index: (M,) negatives}``, updated for every query with a positive.
+    """
+
+    query: np.ndarray
+    positive: np.ndarray
+    negatives: np.ndarray
+    negative_mask: np.ndarray
+    geo_qp: np.ndarray
+    valid: np.ndarray
+    neg_cache: dict[int, np.ndarray]
+
+
+def train_positives(db_utm, q_utm, radius: float = 10.0) -> list[np.ndarray]:
+    """Training positives of each query: database images within ``radius`` m (inclusive).
+
+    NetVLAD trains with "potential positives" within 10 m and evaluates with 25 m; a thin
+    name for :func:`vpr_nb.evaluation.positives_within` with the training radius.
+    """
+    return positives_within(db_utm, q_utm, radius)
+
+
+def _sq_dist(q: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Squared Euclidean distances from vector ``q`` to each row of ``x`` (one matmul)."""
+    return np.maximum(np.einsum("ij,ij->i", x, x) - 2.0 * (x @ q) + q @ q, 0.0)
+
+
+def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius: float = 10.0,
+                  neg_radius: float = 25.0, num_negatives: int = 10, num_candidates: int = 1000,
+                  neg_cache: dict[int, np.ndarray] | None = None, rng, margin: float | None = None) -> TripletBatch:
+    """NetVLAD weakly supervised tuple mining (Arandjelovic et al., CVPR 2016, Sec. 4, Eq. (7)).
+
+    For each query in ``query_ids``:
+
+    * positive: among the database images within ``train_pos_radius`` m (inclusive), the one
+      nearest in descriptor space (Eq. (7) takes the best of the potential positives);
+    * candidate negatives: ``num_candidates`` images drawn uniformly *without replacement* among
+      the database images farther than ``neg_radius`` m, plus the query's cached negatives
+      (those farther than ``neg_radius`` m);
+    * negatives: the ``num_negatives`` (M) candidates nearest to the query in descriptor space,
+      sorted hardest (nearest) first.
+
+    Distances are plain Euclidean distances. With ``margin=None`` the M hardest are kept (as in
+    the deep-visual-geo-localization-benchmark). With a ``margin`` (same units), ``negative_mask``
+    marks the negatives that violate it, ``d(q, n) < d(q, p) + margin``, and a query with no
+    violating negative is invalid (as in pytorch-NetVlad, which skips it); the loss should use only
+    masked negatives. A query is also invalid when it has no positive or fewer than M negatives.
+    The cache entry of every query with a positive and M negatives is replaced by its M hardest
+    negatives; pass the returned ``neg_cache`` back in at the next call.
+
+    Args:
+        q_desc: ``(Q, D)`` query descriptors (e.g. L2-normalised, float32).
+        db_desc: ``(N, D)`` database descriptors.
+        q_utm: ``(Q, 2)`` query positions, metres.
+        db_utm: ``(N, 2)`` database positions, metres.
+        query_ids: ``(B,)`` indices of the queries to mine for.
+        train_pos_radius: positives are within this many metres (10 in NetVLAD).
+        neg_radius: negatives are farther than this (25); must be >= train_pos_radius.
+        num_negatives: M negatives per query (10).
+        num_candidates: random negatives sampled per query (1000); must be >= M.
+        neg_cache: dict from query index to its cached negatives, updated in place (or None).
+        rng: ``np.random.Generator`` (or an int seed).
+        margin: optional triplet margin for the violation mask.
+    """
+    qd = as_float_matrix(q_desc, "q_desc")
+    dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
+    qu = as_utm(q_utm, "q_utm")
+    du = as_utm(db_utm, "db_utm")
+    if len(qu) != len(qd):
+        raise ValueError(f"q_utm has {len(qu)} rows but q_desc has {len(qd)}: one position per query")
+    if len(du) != len(dbd):
+        raise ValueError(f"db_utm has {len(du)} rows but db_desc has {len(dbd)}: one position per database image")
+    ids = np.asarray(query_ids)
+    if ids.ndim != 1 or len(ids) == 0 or not np.issubdtype(ids.dtype, np.integer):
+        raise ValueError(f"query_ids must be a non-empty 1-D integer array, got {ids.dtype} of shape {ids.shape}")
+    if ids.min() < 0 or ids.max() >= len(qd):
+        raise ValueError(f"query_ids must lie in [0, {len(qd) - 1}], got range [{ids.min()}, {ids.max()}]")
+    pos_r = check_positive(train_pos_radius, "train_pos_radius")
+    neg_r = check_positive(neg_radius, "neg_radius")
+    if neg_r < pos_r:
+        raise ValueError(f"neg_radius ({neg_r}) must be >= train_pos_radius ({pos_r}), otherwise an image "
+                         "could be both a positive and a negative")
+    m = check_int(num_negatives, "num_negatives")
+    c = check_int(num_candidates, "num_candidates")
+    if c < m:
+        raise ValueError(f"num_candidates ({c}) must be >= num_negatives ({m})")
+    if margin is not None:
+        margin = check_positive(margin, "margin", allow_zero=True)
+    if neg_cache is None:
+        neg_cache = {}
+    elif not isinstance(neg_cache, dict):
+        raise ValueError(f"neg_cache must be a dict {{query index: negatives}} or None, got {type(neg_cache).__name__}")
+    rng = _as_rng(rng)
+
+    ids = ids.astype(np.int64)
+    b = len(ids)
+    positive = np.full(b, -1, dtype=np.int64)
+    negatives = np.full((b, m), -1, dtype=np.int64)
+    mask = np.zeros((b, m), dtype=bool)
+    geo_qp = np.full(b, np.nan)
+    valid = np.zeros(b, dtype=bool)
+    pos_lists = positives_within(du, qu[ids], pos_r)
+    near_lists = positives_within(du, qu[ids], neg_r)
+    n_db = len(dbd)
+    for r, (qi, pos, near) in enumerate(zip(ids.tolist(), pos_lists, near_lists)):
+        take = min(c, n_db - len(near))
+        draw = rng.choice(n_db, size=min(n_db, take + len(near)), replace=False)
+        sample = draw[~np.isin(draw, near)][:take]  # uniform without replacement beyond neg_radius
+        if len(pos) == 0:
+            continue
+        q = qd[qi]
+        d_pos = np.sqrt(_sq_dist(q, dbd[pos]))
+        best = int(np.argmin(d_pos))
+        positive[r], geo_qp[r] = pos[best], _dist(qu[qi], du[pos[best]])
+        cached = np.asarray(neg_cache.get(qi, ()), dtype=np.int64)
+        cached = cached[(cached >= 0) & (cached < n_db)]
+        cached = cached[_dist(du[cached], qu[qi]) > neg_r]
+        cand = np.union1d(sample, cached)
+        if len(cand) < m:
+            continue
+        d_neg = np.sqrt(_sq_dist(q, dbd[cand]))
+        hardest = np.argsort(d_neg, kind="stable")[:m]
+        negatives[r] = cand[hardest]
+        neg_cache[qi] = cand[hardest]
+        mask[r] = True if margin is None else d_neg[hardest] < d_pos[best] + margin
+        valid[r] = mask[r].any()
+    return TripletBatch(query=ids, positive=positive, negatives=negatives, negative_mask=mask,
+                        geo_qp=geo_qp, valid=valid, neg_cache=neg_cache)
