@@ -3,15 +3,40 @@
 Inside a notebook, ``record("03_dw_triplet", {"T-Loss R@1": 0.71, ...})`` is a no-op unless the
 environment variable ``VPR_NB_RESULTS`` names a JSON-lines file, which the report runner
 (``python -m vpr_nb.report``) sets while it executes the notebook sequence with papermill.
+
+The runner::
+
+    python -m vpr_nb.report --profile {ci,reproduce} --out reports [--notebooks PATTERN]
+
+executes every ``notebooks/[0-9][0-9]_*.ipynb`` in order with ``PROFILE`` injected into the cell
+tagged ``parameters``, and writes under ``--out``:
+
+- ``notebooks/``  the executed copies (also of a notebook that failed, up to the failing cell);
+- ``figures/``    every PNG output, named ``<notebook>_<cell>_<k>.png``;
+- ``results.md``  a header (date, profile, commit, versions, cores), then per notebook its status,
+  wall time and the recorded results as Markdown tables; ``results.json`` holds the same data.
+
+A failing notebook is reported and the next one runs; the exit status is 1 if any failed.
 """
 from __future__ import annotations
 
+import argparse
+import base64
+import datetime as _dt
 import json
 import math
 import os
+import platform
+import subprocess
+import sys
+import time
 from collections.abc import Mapping
+from pathlib import Path
 
 RESULTS_ENV = "VPR_NB_RESULTS"
+PROFILES = ("ci", "reproduce")
+DEFAULT_PATTERN = "[0-9][0-9]_*.ipynb"
+INLINE_BACKEND = "module://matplotlib_inline.backend_inline"
 
 
 def _jsonable(value):
@@ -45,3 +70,236 @@ def record(notebook: str, results: Mapping) -> None:
         return
     with open(path, "a", encoding="utf-8") as fh:
         fh.write(json.dumps(payload) + "\n")
+
+
+# ---------------------------------------------------------------------------------------------
+# Markdown rendering
+# ---------------------------------------------------------------------------------------------
+def format_value(value) -> str:
+    """One table cell: floats to 3 decimals (3 significant digits when tiny), lists comma-joined."""
+    if isinstance(value, bool) or value is None:
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.3f}" if value == 0 or abs(value) >= 1e-3 else f"{value:.3g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(format_value(v) for v in value)
+    if isinstance(value, Mapping):
+        return json.dumps(value)
+    return str(value).replace("|", "\\|").replace("\n", " ")
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def render_table(results: Mapping) -> str:
+    """Recorded results as Markdown.
+
+    A flat dict becomes a two-column table (``name | value``); a dict of dicts becomes one table
+    with the outer keys as rows and the union of the inner keys as columns (blank where missing);
+    lists are comma-joined. A dict mixing both gives the flat table followed by the grid; a value
+    that is itself a dict of dicts gets its own grid below, titled with its key.
+    """
+    if not isinstance(results, Mapping) or not results:
+        raise ValueError("render_table() needs a non-empty dict, e.g. {'R@1': 0.71}")
+    flat = {k: v for k, v in results.items() if not isinstance(v, Mapping)}
+    deeper = {k: v for k, v in results.items() if isinstance(v, Mapping) and v
+              and any(isinstance(x, Mapping) for x in v.values())}
+    nested = {k: v for k, v in results.items() if isinstance(v, Mapping) and k not in deeper}
+    parts = []
+    if flat:
+        parts.append(_table(["name", "value"], [[format_value(k), format_value(v)] for k, v in flat.items()]))
+    if nested:
+        columns: list[str] = []
+        for inner in nested.values():
+            columns += [c for c in inner if c not in columns]
+        rows = [[format_value(k)] + [format_value(inner[c]) if c in inner else "" for c in columns]
+                for k, inner in nested.items()]
+        parts.append(_table([""] + [format_value(c) for c in columns], rows))
+    parts += [f"**{format_value(k)}**\n\n{render_table(v)}" for k, v in deeper.items()]
+    return "\n\n".join(parts)
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures
+# ---------------------------------------------------------------------------------------------
+def extract_figures(nb: Mapping, stem: str, out_dir) -> list[Path]:
+    """Write every ``image/png`` output of notebook ``nb`` to ``out_dir/<stem>_<cell>_<k>.png``.
+
+    ``nb`` is a notebook as a dict (nbformat v4 or a plain ``json.load``); ``cell`` is the cell's
+    index in the notebook (2 digits), ``k`` counts the PNGs within that cell. Returns the paths.
+    """
+    if not isinstance(nb, Mapping) or "cells" not in nb:
+        raise ValueError("extract_figures() needs a notebook dict with a 'cells' list (nbformat v4)")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for c, cell in enumerate(nb["cells"]):
+        k = 0
+        for output in cell.get("outputs", []):
+            png = output.get("data", {}).get("image/png")
+            if not png:
+                continue
+            if isinstance(png, list):  # nbformat allows multi-line strings as lists
+                png = "".join(png)
+            path = out_dir / f"{stem}_{c:02d}_{k}.png"
+            path.write_bytes(base64.b64decode(png))
+            paths.append(path)
+            k += 1
+    return paths
+
+
+# ---------------------------------------------------------------------------------------------
+# Runner
+# ---------------------------------------------------------------------------------------------
+def environment_header(profile: str) -> dict:
+    """Date, profile, git commit (if available), library versions and core count."""
+    head = {"date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "profile": profile}
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, check=True).stdout.strip()
+        head["git commit"] = commit + (" (with uncommitted changes)" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        head["git commit"] = "unavailable"
+    head["python"] = platform.python_version()
+    for mod in ("torch", "faiss", "numpy"):
+        try:
+            head[mod] = __import__(mod).__version__
+        except Exception:  # noqa: BLE001 - a missing library is reported, not fatal
+            head[mod] = "not importable"
+    head["machine"] = f"{platform.machine()}, {os.cpu_count()} cores ({platform.system()})"
+    return head
+
+
+def find_notebooks(notebooks_dir, pattern: str = DEFAULT_PATTERN) -> list[Path]:
+    """Notebooks in ``notebooks_dir`` matching ``pattern``, sorted by name (00, 01, ...)."""
+    notebooks_dir = Path(notebooks_dir)
+    if not notebooks_dir.is_dir():
+        raise FileNotFoundError(f"notebook folder {notebooks_dir} does not exist; run from the repository root")
+    found = sorted(p for p in notebooks_dir.glob(pattern) if p.suffix == ".ipynb")
+    if not found:
+        raise FileNotFoundError(f"no notebook in {notebooks_dir} matches {pattern!r}; "
+                                f"try the default {DEFAULT_PATTERN!r}")
+    return found
+
+
+def _read_records(path: Path, start: int) -> tuple[dict, int]:
+    """Merge the records appended to ``path`` after line ``start``: ``{key: results}``."""
+    if not path.exists():
+        return {}, start
+    lines = path.read_text(encoding="utf-8").splitlines()
+    merged: dict = {}
+    for line in lines[start:]:
+        entry = json.loads(line)
+        merged.setdefault(entry["notebook"], {}).update(entry["results"])
+    return merged, len(lines)
+
+
+def run_notebook(src: Path, out_path: Path, profile: str, results_file: Path) -> dict:
+    """Execute one notebook with papermill; return ``{status, error, seconds}`` (never raises on a cell error)."""
+    import papermill
+
+    saved = {k: os.environ.get(k) for k in (RESULTS_ENV, "MPLBACKEND")}
+    os.environ[RESULTS_ENV] = str(results_file.resolve())
+    os.environ["MPLBACKEND"] = INLINE_BACKEND  # figures as PNG outputs even if the shell set Agg
+    start = time.perf_counter()
+    status, error = "ok", ""
+    try:
+        papermill.execute_notebook(str(src), str(out_path), parameters={"PROFILE": profile},
+                                   cwd=str(src.parent), kernel_name="python3", progress_bar=False)
+    except Exception as exc:  # noqa: BLE001 - report any failure and go on with the next notebook
+        status = "failed"
+        if hasattr(exc, "ename"):
+            error = f"{exc.ename}: {exc.evalue} (cell {getattr(exc, 'cell_index', '?')})"
+        else:
+            error = f"{type(exc).__name__}: {exc}"
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return {"status": status, "error": error, "seconds": round(time.perf_counter() - start, 1)}
+
+
+def render_markdown(header: Mapping, notebooks: list[dict]) -> str:
+    """The whole ``results.md``."""
+    lines = ["# vpr-notebooks results report", "", render_table(dict(header)), "", "## Summary", ""]
+    lines.append(_table(["notebook", "status", "wall time (s)"],
+                        [[nb["name"], nb["status"], f"{nb['seconds']:.1f}"] for nb in notebooks]))
+    for nb in notebooks:
+        lines += ["", f"## {nb['name']}", "", f"- status: **{nb['status']}**"]
+        if nb["error"]:
+            lines.append(f"- error: `{nb['error'].replace('`', chr(39))}`")
+        lines.append(f"- wall time: {nb['seconds']:.1f} s")
+        lines.append(f"- executed copy: `notebooks/{nb['name']}.ipynb`, figures: {len(nb['figures'])}")
+        if not nb["results"]:
+            lines += ["", "_No results recorded._"]
+        for key, results in nb["results"].items():
+            if len(nb["results"]) > 1 or key != nb["name"]:
+                lines += ["", f"### {key}"]
+            lines += ["", render_table(results)]
+        if nb["figures"]:
+            lines += [""] + [f"![{Path(f).stem}]({f})" for f in nb["figures"]]
+    return "\n".join(lines) + "\n"
+
+
+def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: str = DEFAULT_PATTERN) -> dict:
+    """Run the notebook sequence and write the report; returns the ``results.json`` payload."""
+    if profile not in PROFILES:
+        raise ValueError(f"unknown profile {profile!r}; choose one of {PROFILES} "
+                         f"('ci' is small and quick, 'reproduce' the full report)")
+    sources = find_notebooks(notebooks_dir, pattern)
+    out = Path(out)
+    (out / "notebooks").mkdir(parents=True, exist_ok=True)
+    fig_dir = out / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    results_file = out / "results.jsonl"
+    results_file.write_text("", encoding="utf-8")
+    header = environment_header(profile)
+    done, line = [], 0
+    for src in sources:
+        stem = src.stem
+        out_nb = out / "notebooks" / src.name
+        out_nb.unlink(missing_ok=True)  # never report a stale copy from an earlier run
+        for old in fig_dir.glob(f"{stem}_*.png"):
+            old.unlink()
+        print(f"[run ] {src.name} (profile {profile})", flush=True)
+        entry = {"name": stem, **run_notebook(src, out_nb, profile, results_file)}
+        entry["results"], line = _read_records(results_file, line)
+        figures = extract_figures(json.loads(out_nb.read_text(encoding="utf-8")), stem, fig_dir) \
+            if out_nb.exists() else []
+        entry["figures"] = [str(p.relative_to(out)) for p in figures]
+        print(f"[{entry['status']:>4}] {src.name} {entry['seconds']:.1f} s"
+              + (f"  {entry['error']}" if entry["error"] else ""), flush=True)
+        done.append(entry)
+    payload = {"header": header, "notebooks": done}
+    (out / "results.json").write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
+    (out / "results.md").write_text(render_markdown(header, done), encoding="utf-8")
+    return payload
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m vpr_nb.report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--profile", required=True, choices=PROFILES, help="budget profile injected as PROFILE")
+    parser.add_argument("--out", default="reports", help="output folder (default: reports)")
+    parser.add_argument("--notebooks", default=DEFAULT_PATTERN, metavar="PATTERN",
+                        help=f"glob of notebooks to run (default: {DEFAULT_PATTERN!r})")
+    parser.add_argument("--notebooks-dir", default="notebooks", help="folder holding the notebooks")
+    args = parser.parse_args(argv)
+    try:
+        payload = run_report(args.profile, args.out, args.notebooks_dir, args.notebooks)
+    except (ValueError, FileNotFoundError) as exc:
+        parser.error(str(exc))  # exits with status 2 and the message
+    failed = [nb["name"] for nb in payload["notebooks"] if nb["status"] != "ok"]
+    print(f"report: {Path(args.out) / 'results.md'}"
+          + (f"; FAILED: {', '.join(failed)}" if failed else "; all notebooks ok"))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
