@@ -375,7 +375,8 @@ def _sq_dist(q: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius: float = 10.0,
                   neg_radius: float = 25.0, num_negatives: int = 10, num_candidates: int = 1000,
-                  neg_cache: dict[int, np.ndarray] | None = None, rng, margin: float | None = None) -> TripletBatch:
+                  neg_cache: dict[int, np.ndarray] | None = None, rng, margin: float | None = None,
+                  q_heading=None, db_heading=None, max_heading_diff: float | None = None) -> TripletBatch:
     """NetVLAD weakly supervised tuple mining (Arandjelovic et al., CVPR 2016, Sec. 4, Eq. (7)).
 
     For each query in ``query_ids``:
@@ -387,6 +388,12 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
       (those farther than ``neg_radius`` m);
     * negatives: the ``num_negatives`` (M) candidates nearest to the query in descriptor space,
       sorted hardest (nearest) first.
+
+    Optionally (``max_heading_diff`` with ``q_heading``/``db_heading`` in degrees) a potential
+    positive must also face the same way as the query, ``|Δheading| ≤ max_heading_diff``: with
+    several headings per place (Pittsburgh's 24 views), an image 5 m away that looks the other way
+    shares no content, and a randomly initialised network cannot tell which potential positive is
+    the right view (an ImageNet-pretrained one mostly can). Negatives ignore headings.
 
     Distances are plain Euclidean distances. With ``margin=None`` the M hardest are kept (as in
     the deep-visual-geo-localization-benchmark). With a ``margin`` (same units), ``negative_mask``
@@ -409,6 +416,10 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
         neg_cache: dict from query index to its cached negatives, updated in place (or None).
         rng: ``np.random.Generator`` (or an int seed).
         margin: optional triplet margin for the violation mask.
+        q_heading, db_heading: ``(Q,)`` and ``(N,)`` camera headings in degrees (only with
+            ``max_heading_diff``).
+        max_heading_diff: keep only potential positives within this many degrees of the query's
+            heading (None: any heading, the NetVLAD rule).
     """
     qd = as_float_matrix(q_desc, "q_desc")
     dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
@@ -439,6 +450,15 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
     elif not isinstance(neg_cache, dict):
         raise ValueError(f"neg_cache must be a dict {{query index: negatives}} or None, got {type(neg_cache).__name__}")
     rng = _as_rng(rng)
+    if max_heading_diff is not None:
+        max_heading_diff = check_positive(max_heading_diff, "max_heading_diff")
+        if q_heading is None or db_heading is None:
+            raise ValueError("max_heading_diff needs q_heading and db_heading (degrees, one per image)")
+        qh = np.asarray(q_heading, dtype=np.float64)
+        dh = np.asarray(db_heading, dtype=np.float64)
+        if qh.shape != (len(qd),) or dh.shape != (len(dbd),) or not (np.isfinite(qh).all() and np.isfinite(dh).all()):
+            raise ValueError(f"q_heading must have shape ({len(qd)},) and db_heading ({len(dbd)},), finite "
+                             f"degrees; got {qh.shape} and {dh.shape}")
 
     ids = ids.astype(np.int64)
     b = len(ids)
@@ -454,6 +474,8 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
         take = min(c, n_db - len(near))
         draw = rng.choice(n_db, size=min(n_db, take + len(near)), replace=False)
         sample = draw[~np.isin(draw, near)][:take]  # uniform without replacement beyond neg_radius
+        if max_heading_diff is not None:
+            pos = pos[np.abs((dh[pos] - qh[qi] + 180.0) % 360.0 - 180.0) <= max_heading_diff]
         if len(pos) == 0:
             continue
         q = qd[qi]

@@ -76,7 +76,7 @@ class WorldConfig:
     place_spacing: float = 10.0                   # database places along streets
     headings: int = 4                             # database headings per place (street-relative)
     heading_offset: float = 45.0                  # first heading relative to the street (45 = diagonal views)
-    queries_per_place: float = 1.5
+    queries_per_place: float = 3.0
     # --- route geometry ---
     num_frames: int = 900
     frame_spacing: float = 5.0
@@ -87,7 +87,7 @@ class WorldConfig:
     # --- query difficulty ---
     db_condition: str = "summer"
     query_conditions: tuple[str, ...] = ("overcast", "dusk", "autumn", "winter", "rain")
-    condition_strength: float = 1.0               # 0 = queries look like the database condition
+    condition_strength: float = 0.5               # 0 = queries look like the database condition, 1 = full
     position_jitter: float = 3.0                  # std of query position noise (m); route: along-track
     heading_jitter: float = 8.0                   # std of query heading noise
     pitch_jitter: float = 1.0                     # std of horizon shift (pixels)
@@ -530,7 +530,7 @@ def _render(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.nda
         up, zp, kp = u[n_idx, h_idx, w_idx], z[n_idx, h_idx, w_idx], scene.kind[sgp]
         col = scene.colour[sgp].copy()
         # facade texture: windows, bands, shop floor
-        stl = styles[scene.style[sgp]]
+        stl = styles[scene.style[sgp] % len(styles)]  # non-wall segments reuse small style ids
         wall = kp == WALL
         win = ((up % stl[:, 3]) / stl[:, 3] < stl[:, 5]) & (((zp % stl[:, 4]) / stl[:, 4]) < stl[:, 6]) & (zp > stl[:, 4])
         band = (stl[:, 7] > 0) & (((zp % stl[:, 4]) / stl[:, 4]) > 0.88)
@@ -787,9 +787,13 @@ def make_dataset(preset: str = "city", seed: int = 0, size: str = "tiny",
             q_img[qi] = _render_all(scene, cfg, q_pos[g], q_head[g], q_pitch[g],
                                     [q_cond_names[i] for i in g], q_occ[g], split_rngs[2 * k + 1])
     q_cond = np.array([names.index(c) for c in q_cond_names], dtype=np.int64)
+    # geotags: a route query is tagged with its frame's track position (Nordland's ground truth is
+    # frame-aligned), so positives within 1.01 x frame_spacing are exactly frames i-1, i, i+1; the
+    # along-track jitter only moves the rendered camera. City queries are tagged where they stand.
+    q_tag = db_pos.copy() if preset == "route" else q_pos
     return VPRDataset(
         name=f"{preset}-{size}", config=cfg, seed=seed,
-        db_images=db_img, q_images=q_img, db_utm=db_pos[dm], q_utm=q_pos[qm],
+        db_images=db_img, q_images=q_img, db_utm=db_pos[dm], q_utm=q_tag[qm],
         db_heading=db_head[dm], q_heading=q_head[qm],
         db_condition=np.zeros(dm.sum(), np.int64), q_condition=q_cond[qm],
         db_split=db_split[dm], q_split=q_split[qm], db_place=db_place[dm], q_place=q_place[qm],

@@ -1,0 +1,334 @@
+"""One training loop for every notebook and reproduction run.
+
+:func:`train` runs epochs of optimiser steps whose losses come from a *batch source*:
+
+- :class:`TripletSource` — NetVLAD-style weakly supervised triplets (Arandjelović et al., CVPR 2016,
+  Sec. 4): at the start of every epoch (and every ``cache_refresh`` queries) the descriptors of the
+  training images are recomputed; each query gets its best potential positive (within the training
+  radius) and its M hardest negatives (beyond the evaluation radius) from
+  :func:`vpr_nb.mining.mine_triplets`; the loss is one of DW-T-Loss's Eqs. (3), (4)x(3), (5)-(8), (9).
+- :class:`PlaceBatchSource` — GSV-Cities / CliqueMining-style batches of P places x K images
+  (from :func:`vpr_nb.mining.random_place_batches` or :func:`vpr_nb.mining.clique_batches`) with the
+  Multi-Similarity loss and miner.
+
+Defaults follow DW-T-Loss / NetVLAD: SGD (momentum 0.9, weight decay 1e-3) and StepLR(5, 0.5).
+Every epoch is seeded from ``(seed, epoch)``, so a run interrupted after epoch e and resumed from its
+checkpoint ends with the same weights as an uninterrupted run. Checkpoints are written atomically
+(temporary file + rename) and read with ``torch.load(..., weights_only=True)``.
+"""
+from __future__ import annotations
+
+import copy
+import os
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from . import losses as L
+from ._checks import check_int, check_positive
+from .evaluation import compute_descriptors, evaluate_model, images_to_tensor
+from .mining import mine_triplets
+
+TRIPLET_LOSSES = ("triplet", "weighted", "ce", "dw")
+OPTIMIZERS = ("sgd", "adam")
+
+
+@dataclass
+class TrainConfig:
+    """Hyper-parameters of :func:`train` (defaults: DW-T-Loss / NetVLAD, scaled to the tiny world)."""
+
+    epochs: int = 10
+    optimizer: str = "sgd"
+    lr: float = 0.05                 # NetVLAD used 1e-3 for VGG16; 0.05 suits the small CNN + mean-per-query loss
+    momentum: float = 0.9
+    weight_decay: float = 1e-3
+    step_size: int = 5               # StepLR: multiply lr by gamma every step_size epochs
+    gamma: float = 0.5
+    seed: int = 0
+    ns: tuple[int, ...] = (1, 5, 10)
+    restore_best: bool = True        # end with the best-on-validation weights
+
+    def __post_init__(self):
+        self.epochs = check_int(self.epochs, "epochs")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
+        check_positive(self.lr, "lr")
+        check_positive(self.momentum, "momentum", allow_zero=True)
+        check_positive(self.weight_decay, "weight_decay", allow_zero=True)
+        self.step_size = check_int(self.step_size, "step_size")
+        check_positive(self.gamma, "gamma")
+        self.seed = check_int(self.seed, "seed", minimum=0)
+        self.ns = tuple(check_int(n, "ns entry") for n in self.ns)
+        if not self.ns:
+            raise ValueError("ns must list at least one N for Recall@N, e.g. (1, 5, 10)")
+
+
+@dataclass
+class History:
+    """Per-epoch records of a run: ``epochs[i]`` = {epoch, loss, lr, seconds, val: {N: recall}}."""
+
+    epochs: list[dict] = field(default_factory=list)
+    best_epoch: int = -1
+    best_recall: float = -1.0
+
+    @property
+    def losses(self) -> list[float]:
+        return [e["loss"] for e in self.epochs]
+
+    def recalls(self, n: int = 1) -> list[float]:
+        return [e["val"][n] for e in self.epochs]
+
+    def to_dict(self) -> dict:
+        return {"epochs": [dict(e, val={int(k): float(v) for k, v in e["val"].items()}) for e in self.epochs],
+                "best_epoch": self.best_epoch, "best_recall": self.best_recall}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "History":
+        return cls(epochs=[dict(e, val={int(k): v for k, v in e["val"].items()}) for e in d["epochs"]],
+                   best_epoch=int(d["best_epoch"]), best_recall=float(d["best_recall"]))
+
+    def plot(self, axes=None, label: str | None = None):
+        """Learning curves: training loss (left) and validation Recall@1 (right)."""
+        import matplotlib.pyplot as plt
+        if axes is None:
+            _, axes = plt.subplots(1, 2, figsize=(9, 3))
+        x = [e["epoch"] + 1 for e in self.epochs]
+        axes[0].plot(x, self.losses, marker="o", label=label)
+        axes[0].set(xlabel="epoch", ylabel="mean training loss", title="loss")
+        axes[1].plot(x, self.recalls(1), marker="o", label=label)
+        axes[1].set(xlabel="epoch", ylabel="val Recall@1", title="validation Recall@1", ylim=(0, 1))
+        if label is not None:
+            axes[1].legend()
+        return axes
+
+
+# ------------------------------------------------------------------------------ batch sources
+class TripletSource:
+    """NetVLAD triplets on a split: anchors are the split's queries (optionally also its database).
+
+    Args:
+        split: a dataset split with ``q_images/q_utm/db_images/db_utm`` (and headings if
+            ``max_heading_diff`` is set), ``train_pos_radius`` and ``pos_radius``.
+        loss: ``"triplet"`` (Eq. 3), ``"weighted"`` (Eq. 4 x Eq. 3), ``"ce"`` (Eqs. 5-8), ``"dw"`` (Eq. 9).
+        batch_size: queries per optimiser step; num_negatives: M; num_candidates: random negatives
+            sampled per query; cache_refresh: recompute the descriptor cache every this many queries
+            (None: once per epoch).
+        margin, sigma, eps: the loss parameters (margin for Eq. 3, sigma/eps for Eq. 4).
+        max_heading_diff: keep only positives facing the query's way (see ``mine_triplets``).
+    The per-step loss is the loss summed over the step's triplets divided by the number of queries.
+    """
+
+    def __init__(self, split, loss: str = "triplet", *, batch_size: int = 16, num_negatives: int = 5,
+                 num_candidates: int = 300, cache_refresh: int | None = None, margin: float = 0.1,
+                 sigma: float = 800.0, eps: float = 0.1, max_heading_diff: float | None = None):
+        if loss not in TRIPLET_LOSSES:
+            raise ValueError(f"loss must be one of {TRIPLET_LOSSES}, got {loss!r}")
+        for name in ("q_images", "q_utm", "db_images", "db_utm"):
+            if not hasattr(split, name):
+                raise ValueError(f"split must provide {name} (a VPRDataset split or the like)")
+        if len(split.q_images) == 0 or len(split.db_images) == 0:
+            raise ValueError("the training split has no queries or no database images")
+        self.split, self.loss = split, loss
+        self.batch_size = check_int(batch_size, "batch_size")
+        self.num_negatives = check_int(num_negatives, "num_negatives")
+        self.num_candidates = check_int(num_candidates, "num_candidates")
+        self.cache_refresh = None if cache_refresh is None else check_int(cache_refresh, "cache_refresh")
+        self.margin = check_positive(margin, "margin", allow_zero=True)
+        self.sigma, self.eps = check_positive(sigma, "sigma"), check_positive(eps, "eps")
+        self.max_heading_diff = max_heading_diff
+        self.q = images_to_tensor(split.q_images)
+        self.db = images_to_tensor(split.db_images)
+        self.neg_cache: dict[int, np.ndarray] = {}
+
+    def state_dict(self) -> dict:
+        keys = sorted(self.neg_cache)
+        vals = np.stack([self.neg_cache[k] for k in keys]) if keys else np.zeros((0, self.num_negatives), np.int64)
+        return {"keys": torch.as_tensor(np.asarray(keys, np.int64)), "values": torch.as_tensor(vals)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.neg_cache = {int(k): v.numpy() for k, v in zip(state["keys"], state["values"])}
+
+    def _descriptors(self, model):
+        return compute_descriptors(model, self.split.q_images), compute_descriptors(model, self.split.db_images)
+
+    def _loss(self, q, p, n, geo):
+        if self.loss == "triplet":
+            return L.triplet_loss(q, p, n, self.margin)
+        if self.loss == "weighted":
+            return L.weighted_triplet_loss(q, p, n, geo, self.margin, self.sigma, self.eps)
+        if self.loss == "ce":
+            return L.ce_triplet_loss(q, p, n)
+        return L.dw_triplet_loss(q, p, n, geo, self.sigma, self.eps)
+
+    def steps(self, model, rng: np.random.Generator):
+        """Yield one loss tensor per optimiser step of an epoch."""
+        s = self.split
+        heading = {}
+        if self.max_heading_diff is not None:
+            heading = dict(q_heading=s.q_heading, db_heading=s.db_heading, max_heading_diff=self.max_heading_diff)
+        order = rng.permutation(len(self.q))
+        refresh = self.cache_refresh or len(order)
+        for start in range(0, len(order), self.batch_size):
+            if start == 0 or start // refresh != (start - self.batch_size) // refresh:  # refresh point crossed
+                q_desc, db_desc = self._descriptors(model)
+            ids = order[start:start + self.batch_size]
+            tb = mine_triplets(q_desc, db_desc, s.q_utm, s.db_utm, ids, train_pos_radius=s.train_pos_radius,
+                               neg_radius=s.pos_radius, num_negatives=self.num_negatives,
+                               num_candidates=min(self.num_candidates, len(self.db)),
+                               neg_cache=self.neg_cache, rng=rng, **heading)
+            v = tb.valid
+            if not v.any():
+                continue
+            b, m = int(v.sum()), self.num_negatives
+            x = torch.cat([self.q[tb.query[v]], self.db[tb.positive[v]], self.db[tb.negatives[v].reshape(-1)]])
+            out = model(x)
+            q, p, n = out[:b], out[b:2 * b], out[2 * b:].view(b, m, -1)
+            geo = torch.as_tensor(tb.geo_qp[v], dtype=out.dtype)
+            yield self._loss(q, p, n, geo) / b
+
+
+class PlaceBatchSource:
+    """Batches of P places x K images with the Multi-Similarity loss (Wang et al., CVPR 2019, Eq. 6).
+
+    ``make_batches(model, epoch, rng)`` returns an int array ``(num_batches, P, K)`` of indices into
+    ``images`` (for example :func:`vpr_nb.mining.random_place_batches` or
+    :func:`vpr_nb.mining.clique_batches` on descriptors from ``model``); images in the same place slot
+    share a label.
+    """
+
+    def __init__(self, images, make_batches: Callable, *, alpha: float = 1.0, beta: float = 50.0,
+                 base: float = 0.0, miner_epsilon: float | None = 0.1):
+        self.x = images_to_tensor(images)
+        if not callable(make_batches):
+            raise ValueError("make_batches must be a callable (model, epoch, rng) -> (num_batches, P, K) indices")
+        self.make_batches = make_batches
+        self.alpha, self.beta, self.base, self.miner_epsilon = alpha, beta, base, miner_epsilon
+        self.epoch = 0
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+    def steps(self, model, rng: np.random.Generator):
+        batches = np.asarray(self.make_batches(model, self.epoch, rng))
+        if batches.ndim != 3 or not np.issubdtype(batches.dtype, np.integer):
+            raise ValueError(f"make_batches must return an integer array (num_batches, P, K), got {batches.shape}")
+        if batches.size and (batches.min() < 0 or batches.max() >= len(self.x)):
+            raise ValueError(f"make_batches returned indices outside [0, {len(self.x) - 1}]")
+        num, p, k = batches.shape
+        labels = torch.arange(p).repeat_interleave(k)
+        for batch in batches:
+            emb = model(self.x[torch.as_tensor(batch.reshape(-1))])
+            pairs = None if self.miner_epsilon is None else L.multi_similarity_miner(emb, labels, self.miner_epsilon)
+            yield L.multi_similarity_loss(emb, labels, self.alpha, self.beta, self.base, miner_pairs=pairs)
+
+
+# ------------------------------------------------------------------------------ checkpoints
+def save_checkpoint(path, state: dict) -> Path:
+    """Write ``state`` with ``torch.save`` atomically: a temporary file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def load_checkpoint(path) -> dict:
+    """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: tensors and plain data only)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}; train first or check the path")
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def _optimizer(model, cfg: TrainConfig):
+    params = [p for p in model.parameters() if p.requires_grad]
+    if not params:
+        raise ValueError("the model has no trainable parameters")
+    if cfg.optimizer == "sgd":
+        return torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+
+def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None = None, *,
+          checkpoint_dir=None, resume: bool = True, progress: bool = True,
+          stop_after: int | None = None) -> History:
+    """Train ``model`` with losses from ``source`` (:class:`TripletSource` or :class:`PlaceBatchSource`).
+
+    After every epoch: validation Recall@N on ``val_split`` (:func:`vpr_nb.evaluation.evaluate_model`),
+    the best-on-validation weights kept in memory (and in ``checkpoint_dir/best.pt``), and, with a
+    ``checkpoint_dir``, the full state in ``last.pt``. With ``resume`` an existing ``last.pt`` is
+    continued. ``stop_after`` ends the run after that many epochs of this call (to simulate an
+    interruption). Returns the :class:`History`; with ``config.restore_best`` the model ends with
+    the best validation weights.
+    """
+    cfg = config or TrainConfig()
+    if not isinstance(cfg, TrainConfig):
+        raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
+    if not hasattr(source, "steps"):
+        raise ValueError("source must be a TripletSource or PlaceBatchSource (an object with steps(model, rng))")
+    opt = _optimizer(model, cfg)
+    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.step_size, gamma=cfg.gamma)
+    history, start = History(), 0
+    best_state = copy.deepcopy(model.state_dict())
+    ckdir = None if checkpoint_dir is None else Path(checkpoint_dir)
+    if ckdir is not None and resume and (ckdir / "last.pt").is_file():
+        ck = load_checkpoint(ckdir / "last.pt")
+        if ck["config"] != asdict(cfg):
+            raise ValueError(f"{ckdir / 'last.pt'} was written with a different TrainConfig; "
+                             "use another checkpoint_dir or resume=False")
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        source.load_state_dict(ck["source"])
+        history, start, best_state = History.from_dict(ck["history"]), int(ck["epoch"]) + 1, ck["best_model"]
+    end = cfg.epochs if stop_after is None else min(cfg.epochs, start + check_int(stop_after, "stop_after"))
+    bar = tqdm(range(start, end), desc="epochs", disable=not progress, leave=False)
+    for epoch in bar:
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([cfg.seed, epoch])
+        torch.manual_seed(cfg.seed * 100_003 + epoch)
+        if hasattr(source, "epoch"):
+            source.epoch = epoch
+        model.train()
+        total, steps = 0.0, 0
+        for loss in source.steps(model, rng):
+            if not torch.isfinite(loss):
+                raise ValueError(f"the loss became {loss.item()} at epoch {epoch}; lower the learning rate")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total, steps = total + loss.item(), steps + 1
+        lr = opt.param_groups[0]["lr"]
+        sched.step()
+        val = evaluate_model(model, val_split, ns=cfg.ns)
+        history.epochs.append({"epoch": epoch, "loss": total / max(steps, 1), "lr": lr,
+                               "seconds": time.perf_counter() - t0, "val": val})
+        if val[cfg.ns[0]] > history.best_recall:
+            history.best_epoch, history.best_recall = epoch, float(val[cfg.ns[0]])
+            best_state = copy.deepcopy(model.state_dict())
+            if ckdir is not None:
+                save_checkpoint(ckdir / "best.pt", {"model": best_state, "epoch": epoch})
+        if ckdir is not None:
+            save_checkpoint(ckdir / "last.pt", {
+                "model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                "source": source.state_dict(), "history": history.to_dict(), "epoch": epoch,
+                "best_model": best_state, "config": asdict(cfg)})
+        bar.set_postfix(loss=f"{total / max(steps, 1):.3f}", R1=f"{val[cfg.ns[0]]:.3f}")
+    if cfg.restore_best and history.best_epoch >= 0 and end == cfg.epochs:
+        model.load_state_dict(best_state)
+    return history
