@@ -1,0 +1,116 @@
+"""The training loop: determinism, resume-after-interruption, checkpoints, bad input."""
+import numpy as np
+import pytest
+import torch
+
+from vpr_nb import seed_everything
+from vpr_nb.mining import random_place_batches
+from vpr_nb.models import build_model
+from vpr_nb.synthetic import make_dataset
+from vpr_nb.training import (History, PlaceBatchSource, TrainConfig, TripletSource, load_checkpoint,
+                             save_checkpoint, train)
+
+WORLD = dict(blocks=(5, 2), image_size=(16, 24), queries_per_place=1.0)
+
+
+@pytest.fixture(scope="module")
+def world():
+    return make_dataset("city", 0, **WORLD)
+
+
+def _model():
+    seed_everything(0)
+    return build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
+
+
+def _run(world, tmp_path=None, stop_after=None, loss="triplet", epochs=3):
+    model = _model()
+    src = TripletSource(world.train, loss, batch_size=8, num_negatives=3, num_candidates=50, max_heading_diff=45)
+    hist = train(model, src, world.val, TrainConfig(epochs=epochs, lr=0.05, step_size=1), checkpoint_dir=tmp_path,
+                 progress=False, stop_after=stop_after)
+    return model, hist
+
+
+def _same_weights(a, b):
+    return all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+
+
+def test_training_is_deterministic_and_learns(world):
+    m1, h1 = _run(world)
+    m2, h2 = _run(world)
+    assert _same_weights(m1, m2)
+    assert h1.losses == h2.losses and h1.recalls(1) == h2.recalls(1) and h1.best_epoch == h2.best_epoch
+    assert len(h1.epochs) == 3 and 0 <= h1.best_epoch < 3
+    assert h1.epochs[1]["lr"] == pytest.approx(0.05 * 0.5)       # StepLR(step_size=1, gamma=0.5)
+    assert all(np.isfinite(h1.losses))
+
+
+def test_interrupted_run_resumes_to_the_same_weights(world, tmp_path):
+    full, hist_full = _run(world)
+    _, partial = _run(world, tmp_path, stop_after=1)
+    assert len(partial.epochs) == 1 and (tmp_path / "last.pt").is_file() and (tmp_path / "best.pt").is_file()
+    resumed, hist = _run(world, tmp_path)                           # picks up last.pt, runs epochs 2 and 3
+    assert [e["epoch"] for e in hist.epochs] == [0, 1, 2]
+    assert _same_weights(full, resumed)
+    assert hist.recalls(1) == hist_full.recalls(1)
+
+
+def test_resume_refuses_a_different_config(world, tmp_path):
+    _run(world, tmp_path, stop_after=1)
+    with pytest.raises(ValueError, match="different TrainConfig"):
+        _run(world, tmp_path, epochs=4)
+
+
+@pytest.mark.parametrize("loss", ["weighted", "ce", "dw"])
+def test_every_triplet_loss_trains(world, loss):
+    _, hist = _run(world, loss=loss, epochs=1)
+    assert np.isfinite(hist.losses).all()
+
+
+def test_place_batch_source(world):
+    tr = world.train
+    images = np.concatenate([tr.db_images, tr.q_images])
+    groups = np.concatenate([tr.db_place, tr.q_place])
+
+    def batches(model, epoch, rng):
+        return random_place_batches(groups, places_per_batch=8, images_per_place=2, num_batches=3,
+                                    seed=int(rng.integers(1 << 30)))
+    model = _model()
+    hist = train(model, PlaceBatchSource(images, batches), world.val, TrainConfig(epochs=1), progress=False)
+    assert np.isfinite(hist.losses).all()
+
+
+def test_checkpoint_roundtrip_is_atomic_and_weights_only(tmp_path):
+    state = {"model": {"w": torch.arange(3.0)}, "epoch": 2}
+    path = save_checkpoint(tmp_path / "sub" / "ck.pt", state)
+    assert sorted(p.name for p in path.parent.iterdir()) == ["ck.pt"]        # no temp file left behind
+    back = load_checkpoint(path)
+    assert back["epoch"] == 2 and torch.equal(back["model"]["w"], state["model"]["w"])
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        load_checkpoint(tmp_path / "missing.pt")
+    torch.save({"obj": History()}, tmp_path / "unsafe.pt")                    # arbitrary objects are refused
+    with pytest.raises(Exception):
+        load_checkpoint(tmp_path / "unsafe.pt")
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(epochs=0), "epochs"), (dict(optimizer="rmsprop"), "optimizer"), (dict(lr=-1.0), "lr"),
+    (dict(ns=()), "ns"), (dict(gamma=0.0), "gamma"),
+])
+def test_bad_config(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig(**kwargs)
+
+
+def test_bad_sources(world):
+    with pytest.raises(ValueError, match="loss must be one of"):
+        TripletSource(world.train, "contrastive")
+    with pytest.raises(ValueError, match="must provide"):
+        TripletSource(object())
+    with pytest.raises(ValueError, match="make_batches"):
+        PlaceBatchSource(world.train.db_images, make_batches=None)
+    with pytest.raises(ValueError, match="TrainConfig"):
+        train(_model(), TripletSource(world.train), world.val, config={"epochs": 1})
+    bad = PlaceBatchSource(world.train.db_images, lambda m, e, r: np.full((1, 2, 2), 10**6))
+    with pytest.raises(ValueError, match="outside"):
+        train(_model(), bad, world.val, TrainConfig(epochs=1), progress=False)
