@@ -118,7 +118,9 @@ class TripletSource:
         loss: ``"triplet"`` (Eq. 3), ``"weighted"`` (Eq. 4 x Eq. 3), ``"ce"`` (Eqs. 5-8), ``"dw"`` (Eq. 9).
         batch_size: queries per optimiser step; num_negatives: M; num_candidates: random negatives
             sampled per query; cache_refresh: recompute the descriptor cache every this many queries
-            (None: once per epoch).
+            (None: once per epoch). pytorch-NetVlad uses M=10, 1000 candidates and a refresh every
+            1000 of Pittsburgh30k's 7416 training queries; the defaults here (M=5, 300 candidates,
+            once per epoch = every ~580 queries of the tiny city) scale that to the tiny world.
         margin, sigma, eps: the loss parameters (margin for Eq. 3, sigma/eps for Eq. 4).
         max_heading_diff: keep only positives facing the query's way (see ``mine_triplets``).
     The per-step loss is the loss summed over the step's triplets divided by the number of queries.
