@@ -123,12 +123,16 @@ class TripletSource:
             once per epoch = every ~580 queries of the tiny city) scale that to the tiny world.
         margin, sigma, eps: the loss parameters (margin for Eq. 3, sigma/eps for Eq. 4).
         max_heading_diff: keep only positives facing the query's way (see ``mine_triplets``).
+        neg_radius: negatives lie beyond this many metres (default: the split's evaluation radius,
+            NetVLAD's 25 m). On a densely sampled route (positives = +-1 frame) a larger radius keeps
+            near-duplicates of the positive out of the negatives.
     The per-step loss is the loss summed over the step's triplets divided by the number of queries.
     """
 
     def __init__(self, split, loss: str = "triplet", *, batch_size: int = 16, num_negatives: int = 5,
                  num_candidates: int = 300, cache_refresh: int | None = None, margin: float = 0.1,
-                 sigma: float = 800.0, eps: float = 0.1, max_heading_diff: float | None = None):
+                 sigma: float = 800.0, eps: float = 0.1, max_heading_diff: float | None = None,
+                 neg_radius: float | None = None):
         if loss not in TRIPLET_LOSSES:
             raise ValueError(f"loss must be one of {TRIPLET_LOSSES}, got {loss!r}")
         for name in ("q_images", "q_utm", "db_images", "db_utm"):
@@ -144,6 +148,7 @@ class TripletSource:
         self.margin = check_positive(margin, "margin", allow_zero=True)
         self.sigma, self.eps = check_positive(sigma, "sigma"), check_positive(eps, "eps")
         self.max_heading_diff = max_heading_diff
+        self.neg_radius = split.pos_radius if neg_radius is None else check_positive(neg_radius, "neg_radius")
         self.q = images_to_tensor(split.q_images)
         self.db = images_to_tensor(split.db_images)
         self.neg_cache: dict[int, np.ndarray] = {}
@@ -181,7 +186,7 @@ class TripletSource:
                 q_desc, db_desc = self._descriptors(model)
             ids = order[start:start + self.batch_size]
             tb = mine_triplets(q_desc, db_desc, s.q_utm, s.db_utm, ids, train_pos_radius=s.train_pos_radius,
-                               neg_radius=s.pos_radius, num_negatives=self.num_negatives,
+                               neg_radius=self.neg_radius, num_negatives=self.num_negatives,
                                num_candidates=min(self.num_candidates, len(self.db)),
                                neg_cache=self.neg_cache, rng=rng, **heading)
             v = tb.valid
