@@ -36,7 +36,8 @@ from .evaluation import compute_descriptors, evaluate_model, images_to_tensor
 from .mining import mine_triplets
 
 TRIPLET_LOSSES = ("triplet", "weighted", "ce", "dw")
-OPTIMIZERS = ("sgd", "adam")
+OPTIMIZERS = ("sgd", "adam", "adamw")
+SCHEDULERS = ("step", "linear")
 
 
 @dataclass
@@ -48,11 +49,16 @@ class TrainConfig:
     lr: float = 0.05                 # NetVLAD used 1e-3 for VGG16; 0.05 suits the small CNN + mean-per-query loss
     momentum: float = 0.9
     weight_decay: float = 1e-3
+    scheduler: str = "step"          # "step": StepLR per epoch; "linear": LinearLR per optimiser step
     step_size: int = 5               # StepLR: multiply lr by gamma every step_size epochs
     gamma: float = 0.5
+    linear_end_factor: float = 0.2   # LinearLR: lr goes 1 -> end_factor over linear_steps steps (SALAD)
+    linear_steps: int = 4000
     seed: int = 0
     ns: tuple[int, ...] = (1, 5, 10)
     restore_best: bool = True        # end with the best-on-validation weights
+    device: str = "auto"             # "auto" (cuda if available), "cpu", "cuda", "cuda:1", ...
+    amp: bool = False                # bfloat16/float16 autocast on CUDA (ignored on CPU)
 
     def __post_init__(self):
         self.epochs = check_int(self.epochs, "epochs")
@@ -61,8 +67,14 @@ class TrainConfig:
         check_positive(self.lr, "lr")
         check_positive(self.momentum, "momentum", allow_zero=True)
         check_positive(self.weight_decay, "weight_decay", allow_zero=True)
+        if self.scheduler not in SCHEDULERS:
+            raise ValueError(f"scheduler must be one of {SCHEDULERS}, got {self.scheduler!r}")
         self.step_size = check_int(self.step_size, "step_size")
         check_positive(self.gamma, "gamma")
+        check_positive(self.linear_end_factor, "linear_end_factor")
+        self.linear_steps = check_int(self.linear_steps, "linear_steps")
+        if not isinstance(self.device, str) or not (self.device in ("auto", "cpu") or self.device.startswith("cuda")):
+            raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:N]', got {self.device!r}")
         self.seed = check_int(self.seed, "seed", minimum=0)
         self.ns = tuple(check_int(n, "ns entry") for n in self.ns)
         if not self.ns:
@@ -149,8 +161,7 @@ class TripletSource:
         self.sigma, self.eps = check_positive(sigma, "sigma"), check_positive(eps, "eps")
         self.max_heading_diff = max_heading_diff
         self.neg_radius = split.pos_radius if neg_radius is None else check_positive(neg_radius, "neg_radius")
-        self.q = images_to_tensor(split.q_images)
-        self.db = images_to_tensor(split.db_images)
+        self.q, self.db = split.q_images, split.db_images
         self.neg_cache: dict[int, np.ndarray] = {}
 
     def state_dict(self) -> dict:
@@ -162,6 +173,7 @@ class TripletSource:
         self.neg_cache = {int(k): v.numpy() for k, v in zip(state["keys"], state["values"])}
 
     def _descriptors(self, model):
+        model = getattr(model, "module", model)        # unwrap DistributedDataParallel
         return compute_descriptors(model, self.split.q_images), compute_descriptors(model, self.split.db_images)
 
     def _loss(self, q, p, n, geo):
@@ -173,8 +185,14 @@ class TripletSource:
             return L.ce_triplet_loss(q, p, n)
         return L.dw_triplet_loss(q, p, n, geo, self.sigma, self.eps)
 
-    def steps(self, model, rng: np.random.Generator):
-        """Yield one loss tensor per optimiser step of an epoch."""
+    def steps(self, model, rng: np.random.Generator, shard: tuple[int, int] = (0, 1), device=None):
+        """Yield one loss tensor per optimiser step of an epoch.
+
+        With ``shard=(rank, world)`` (distributed training) every process mines the whole batch
+        (same random draws, same negative cache) and computes the loss of its share of the
+        triplets, scaled so that the average over processes equals the single-process loss.
+        """
+        rank, world = shard
         s = self.split
         heading = {}
         if self.max_heading_diff is not None:
@@ -189,15 +207,18 @@ class TripletSource:
                                neg_radius=self.neg_radius, num_negatives=self.num_negatives,
                                num_candidates=min(self.num_candidates, len(self.db)),
                                neg_cache=self.neg_cache, rng=rng, **heading)
-            v = tb.valid
-            if not v.any():
-                continue
-            b, m = int(v.sum()), self.num_negatives
-            x = torch.cat([self.q[tb.query[v]], self.db[tb.positive[v]], self.db[tb.negatives[v].reshape(-1)]])
-            out = model(x)
+            v = np.flatnonzero(tb.valid)
+            total = len(v)
+            if total < world:
+                continue                       # every process skips the same steps
+            v = v[rank::world]
+            b, m = len(v), self.num_negatives
+            x = images_to_tensor(np.concatenate([self.q[tb.query[v]], self.db[tb.positive[v]],
+                                                 self.db[tb.negatives[v].reshape(-1)]])).to(device)
+            out = model(x).float()
             q, p, n = out[:b], out[b:2 * b], out[2 * b:].view(b, m, -1)
-            geo = torch.as_tensor(tb.geo_qp[v], dtype=out.dtype)
-            yield self._loss(q, p, n, geo) / b
+            geo = torch.as_tensor(tb.geo_qp[v], dtype=out.dtype, device=out.device)
+            yield self._loss(q, p, n, geo) * (world / total)
 
 
 class PlaceBatchSource:
@@ -211,7 +232,8 @@ class PlaceBatchSource:
 
     def __init__(self, images, make_batches: Callable, *, alpha: float = 1.0, beta: float = 50.0,
                  base: float = 0.0, miner_epsilon: float | None = 0.1):
-        self.x = images_to_tensor(images)
+        self.x = np.asarray(images)
+        images_to_tensor(self.x[:1])           # validates shape and dtype
         if not callable(make_batches):
             raise ValueError("make_batches must be a callable (model, epoch, rng) -> (num_batches, P, K) indices")
         self.make_batches = make_batches
@@ -224,16 +246,19 @@ class PlaceBatchSource:
     def load_state_dict(self, state: dict) -> None:
         pass
 
-    def steps(self, model, rng: np.random.Generator):
+    def steps(self, model, rng: np.random.Generator, shard: tuple[int, int] = (0, 1), device=None):
+        """One MS loss per batch; with ``shard=(rank, world)`` each process takes every world-th place."""
+        rank, world = shard
         batches = np.asarray(self.make_batches(model, self.epoch, rng))
         if batches.ndim != 3 or not np.issubdtype(batches.dtype, np.integer):
             raise ValueError(f"make_batches must return an integer array (num_batches, P, K), got {batches.shape}")
         if batches.size and (batches.min() < 0 or batches.max() >= len(self.x)):
             raise ValueError(f"make_batches returned indices outside [0, {len(self.x) - 1}]")
+        batches = batches[:, rank::world]
         num, p, k = batches.shape
-        labels = torch.arange(p).repeat_interleave(k)
+        labels = torch.arange(p, device=device).repeat_interleave(k)
         for batch in batches:
-            emb = model(self.x[torch.as_tensor(batch.reshape(-1))])
+            emb = model(images_to_tensor(self.x[batch.reshape(-1)]).to(device)).float()
             pairs = None if self.miner_epsilon is None else L.multi_similarity_miner(emb, labels, self.miner_epsilon)
             yield L.multi_similarity_loss(emb, labels, self.alpha, self.beta, self.base, miner_pairs=pairs)
 
@@ -268,7 +293,32 @@ def _optimizer(model, cfg: TrainConfig):
         raise ValueError("the model has no trainable parameters")
     if cfg.optimizer == "sgd":
         return torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    if cfg.optimizer == "adamw":
+        return torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+
+def _scheduler(opt, cfg: TrainConfig):
+    if cfg.scheduler == "step":
+        return torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.step_size, gamma=cfg.gamma)
+    return torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0, end_factor=cfg.linear_end_factor,
+                                             total_iters=cfg.linear_steps)
+
+
+def resolve_device(name: str = "auto") -> torch.device:
+    """``"auto"`` → CUDA when available, else CPU; a CUDA name without CUDA is a clear error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} requested but CUDA is not available; use device='cpu' or 'auto'")
+    return torch.device(name)
+
+
+def _distributed() -> tuple[int, int]:
+    """(rank, world size) of an initialised ``torch.distributed`` process group, else (0, 1)."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
 
 
 def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None = None, *,
@@ -282,14 +332,22 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
     continued. ``stop_after`` ends the run after that many epochs of this call (to simulate an
     interruption). Returns the :class:`History`; with ``config.restore_best`` the model ends with
     the best validation weights.
+
+    Distributed: when a ``torch.distributed`` process group is initialised (e.g. under ``torchrun``)
+    the model is wrapped in ``DistributedDataParallel``; every process mines the same batches and
+    computes its share of each batch's loss, gradients are averaged, and only rank 0 writes
+    checkpoints and shows progress.
     """
     cfg = config or TrainConfig()
     if not isinstance(cfg, TrainConfig):
         raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
     if not hasattr(source, "steps"):
         raise ValueError("source must be a TripletSource or PlaceBatchSource (an object with steps(model, rng))")
+    rank, world = _distributed()
+    device = resolve_device(cfg.device)
+    model.to(device)
     opt = _optimizer(model, cfg)
-    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.step_size, gamma=cfg.gamma)
+    sched = _scheduler(opt, cfg)
     history, start = History(), 0
     best_state = copy.deepcopy(model.state_dict())
     ckdir = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -303,8 +361,14 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
         sched.load_state_dict(ck["scheduler"])
         source.load_state_dict(ck["source"])
         history, start, best_state = History.from_dict(ck["history"]), int(ck["epoch"]) + 1, ck["best_model"]
+    net = model
+    if world > 1:
+        # find_unused_parameters: e.g. SmallCNN's global-token layer is unused by pooling aggregators
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
+                                                        find_unused_parameters=True)
+    amp = cfg.amp and device.type == "cuda"
     end = cfg.epochs if stop_after is None else min(cfg.epochs, start + check_int(stop_after, "stop_after"))
-    bar = tqdm(range(start, end), desc="epochs", disable=not progress, leave=False)
+    bar = tqdm(range(start, end), desc="epochs", disable=not progress or rank != 0, leave=False)
     for epoch in bar:
         t0 = time.perf_counter()
         rng = np.random.default_rng([cfg.seed, epoch])
@@ -313,24 +377,33 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
             source.epoch = epoch
         model.train()
         total, steps = 0.0, 0
-        for loss in source.steps(model, rng):
-            if not torch.isfinite(loss):
-                raise ValueError(f"the loss became {loss.item()} at epoch {epoch}; lower the learning rate")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            total, steps = total + loss.item(), steps + 1
         lr = opt.param_groups[0]["lr"]
-        sched.step()
+        with torch.autocast(device.type, enabled=amp):
+            for loss in source.steps(net, rng, shard=(rank, world), device=device):
+                if not torch.isfinite(loss):
+                    raise ValueError(f"the loss became {loss.item()} at epoch {epoch}; lower the learning rate")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                if cfg.scheduler == "linear":
+                    sched.step()
+                logged = loss.detach()
+                if world > 1:                   # log the whole batch's loss, not this process's share
+                    logged = logged.clone()
+                    torch.distributed.all_reduce(logged)
+                    logged = logged / world
+                total, steps = total + logged.item(), steps + 1
+        if cfg.scheduler == "step":
+            sched.step()
         val = evaluate_model(model, val_split, ns=cfg.ns)
         history.epochs.append({"epoch": epoch, "loss": total / max(steps, 1), "lr": lr,
                                "seconds": time.perf_counter() - t0, "val": val})
         if val[cfg.ns[0]] > history.best_recall:
             history.best_epoch, history.best_recall = epoch, float(val[cfg.ns[0]])
             best_state = copy.deepcopy(model.state_dict())
-            if ckdir is not None:
+            if ckdir is not None and rank == 0:
                 save_checkpoint(ckdir / "best.pt", {"model": best_state, "epoch": epoch})
-        if ckdir is not None:
+        if ckdir is not None and rank == 0:
             save_checkpoint(ckdir / "last.pt", {
                 "model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                 "source": source.state_dict(), "history": history.to_dict(), "epoch": epoch,

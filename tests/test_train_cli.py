@@ -1,0 +1,68 @@
+"""The reproduction command: presets, overrides, outputs, and DDP (2 CPU processes, gloo) vs 1 process."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from vpr_nb.train import PRESETS, main, resolve_config
+
+SMALL = ["--set", 'data.overrides={"blocks": [5, 2], "image_size": [16, 24], "queries_per_place": 1.0}',
+         "--set", 'model.backbone_kwargs={"width": 8, "out_channels": 16}',
+         "--set", "train.epochs=2", "--set", "train.step_size=1", "--set", "source.num_candidates=50",
+         "--no-progress"]
+
+
+def test_every_preset_resolves_and_prints(capsys):
+    for name in PRESETS:
+        assert main(["--preset", name, "--print-config"]) == 0
+        cfg = json.loads(capsys.readouterr().out)
+        assert cfg["preset"] == name and {"data", "model", "source", "train"} <= set(cfg)
+    dwt = resolve_config("dwt-pitts30k")
+    assert dwt["train"]["lr"] == 1e-4 and dwt["train"]["seed"] == 123 and dwt["source"]["num_negatives"] == 10
+    assert dwt["model"]["aggregator_kwargs"]["num_clusters"] == 64 and dwt["source"]["batch_size"] == 4
+    salad = resolve_config("salad-gsv")
+    assert salad["train"]["optimizer"] == "adamw" and salad["train"]["lr"] == 6e-5
+    assert salad["source"]["places_per_batch"] == 60 and salad["source"]["images_per_place"] == 4
+
+
+def test_overrides_are_parsed_and_checked():
+    cfg = resolve_config("dwt-pitts30k", ["source.loss=triplet", "train.lr=0.001", "train.ns=[1,5]"])
+    assert cfg["source"]["loss"] == "triplet" and cfg["train"]["lr"] == 0.001 and cfg["train"]["ns"] == [1, 5]
+    for bad, match in [("train.lrr=1", "unknown key"), ("optim.lr=1", "unknown config section"),
+                       ("lr=1", "section.key=value")]:
+        with pytest.raises(ValueError, match=match):
+            resolve_config("dwt-pitts30k", [bad])
+    with pytest.raises(ValueError, match="unknown preset"):
+        resolve_config("netvlad-tokyo")
+
+
+def test_real_data_preset_without_root_says_how_to_fix(tmp_path):
+    from vpr_nb.train import load_data
+    with pytest.raises(ValueError, match="data.root"):
+        load_data(resolve_config("dwt-pitts30k")["data"])
+
+
+def _run(args, tmp, nproc=1):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    if nproc == 1:
+        cmd = [sys.executable, "-m", "vpr_nb.train"]
+    else:
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
+               "-m", "vpr_nb.train"]
+    subprocess.run(cmd + ["--preset", "synthetic-city-triplet", "--out", str(tmp)] + args, check=True, env=env,
+                   capture_output=True, timeout=600)
+    return json.loads((tmp / "results.json").read_text()), json.loads((tmp / "history.json").read_text())
+
+
+@pytest.mark.slow
+def test_ddp_two_processes_match_one(tmp_path):
+    one, h1 = _run(SMALL, tmp_path / "one")
+    two, h2 = _run(SMALL, tmp_path / "two", nproc=2)
+    assert json.loads((tmp_path / "one" / "config.json").read_text())["preset"] == "synthetic-city-triplet"
+    assert (tmp_path / "two" / "checkpoints" / "last.pt").is_file()
+    for a, b in zip(h1["epochs"], h2["epochs"]):
+        assert a["loss"] == pytest.approx(b["loss"], rel=1e-3)
+    for n in one["test"]:
+        assert abs(one["test"][n] - two["test"][n]) <= 0.05
