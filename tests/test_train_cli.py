@@ -66,3 +66,29 @@ def test_ddp_two_processes_match_one(tmp_path):
         assert a["loss"] == pytest.approx(b["loss"], rel=1e-3)
     for n in one["test"]:
         assert abs(one["test"][n] - two["test"][n]) <= 0.05
+
+
+def test_real_format_split_trains_and_evaluates():
+    """A gmberton-format fixture goes through the same loop as the synthetic world (images read lazily)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from vpr_nb import seed_everything
+    from vpr_nb.datasets import ImageArray, TrainingSplit, load
+    from vpr_nb.evaluation import compute_descriptors, evaluate_model
+    from vpr_nb.models import build_model
+    from vpr_nb.training import TrainConfig, TripletSource, train
+
+    root = Path(__file__).resolve().parents[1] / "data_fixtures" / "gmberton" / "pitts30k"
+    split = TrainingSplit(load(root, "gmberton", split="test"), (16, 16))
+    assert isinstance(split.db_images, ImageArray) and split.db_images.shape[1:] == (16, 16, 3)
+    assert split.db_images[[0, 1]].dtype == np.uint8 and split.db_images[0].shape == (16, 16, 3)
+    seed_everything(0)
+    model = build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
+    assert compute_descriptors(model, split.db_images).shape == (len(split.db_images), 16)
+    source = TripletSource(split, batch_size=2, num_negatives=1, num_candidates=10)
+    hist = train(model, source, split, TrainConfig(epochs=1, ns=(1, 2)), progress=False)
+    assert len(hist.epochs) == 1 and set(evaluate_model(model, split, ns=(1, 2))) == {1, 2}
+    with pytest.raises(ValueError, match="fixed size"):
+        ImageArray(split.geo.db_paths, None)

@@ -915,3 +915,100 @@ def load(root, format: str, *, check_files: bool = True, images_root=None, **opt
 __all__ = ["FORMATS", "GeoSplit", "ImageDataset", "read_image", "load", "load_pitts", "load_gmberton", "load_msls",
            "load_gsv_cities", "load_nordland", "latlon_to_utm", "utm_zone", "parse_gmberton_name", "gsv_image_name"]
 
+
+
+# ----------------------------------------------------------------------------------------------
+# Real splits in the shape the training loop and evaluation use (images loaded lazily)
+# ----------------------------------------------------------------------------------------------
+class ImageArray:
+    """A lazy ``(N, H, W, 3)`` uint8 "array" of image files: indexing reads and resizes only the
+    requested images (Pillow + antialiased ``F.interpolate``), so the training loop and
+    :func:`vpr_nb.evaluation.compute_descriptors` can treat on-disk datasets like in-memory ones."""
+
+    dtype = np.dtype(np.uint8)
+    ndim = 4
+
+    def __init__(self, paths: Sequence, size):
+        self.paths = [str(p) for p in paths]
+        if not self.paths:
+            raise ValueError("ImageArray needs at least one image path")
+        size = _as_size(size)
+        if size is None:
+            raise ValueError("ImageArray needs a fixed size (H, W) so that batches stack")
+        self.size = size
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return (len(self.paths), *self.size, 3)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, index) -> np.ndarray:
+        idx = np.arange(len(self.paths))[index]
+        if np.ndim(idx) == 0:
+            return self[[int(idx)]][0]
+        out = np.empty((len(idx), *self.size, 3), np.uint8)
+        for k, i in enumerate(idx):
+            x = read_image(self.paths[i], self.size, normalize=False)
+            out[k] = (x.permute(1, 2, 0).clamp_(0, 1) * 255).round_().to(torch.uint8).numpy()
+        return out
+
+
+@dataclass
+class TrainingSplit:
+    """A :class:`GeoSplit` seen through the attributes of the synthetic ``VPRDataset`` splits
+    (``db_images``/``q_images`` as lazy :class:`ImageArray`, ``db_utm``, ``pos_radius``, ...), so
+    :class:`vpr_nb.training.TripletSource` and :func:`vpr_nb.evaluation.evaluate_model` accept it."""
+
+    geo: GeoSplit
+    image_size: tuple[int, int]
+
+    def __post_init__(self):
+        g = self.geo
+        self.db_images = ImageArray(g.db_paths, self.image_size)
+        self.q_images = ImageArray(g.q_paths, self.image_size) if g.q_paths else None
+        self.db_utm, self.q_utm = g.db_utm, g.q_utm
+        self.db_heading, self.q_heading = g.db_heading, g.q_heading
+        self.db_place, self.q_place = g.db_place, g.q_place
+        self.pos_radius = g.pos_radius if g.pos_radius is not None else 25.0
+        self.train_pos_radius = g.train_pos_radius if g.train_pos_radius is not None else 10.0
+
+
+# per-format location of the three splits under ``data.root``
+_SPLIT_FILES = {"pitts": {"train": "datasets/pitts30k_train.mat", "val": "datasets/pitts30k_val.mat",
+                          "test": "datasets/pitts30k_test.mat"}}
+
+
+def load_splits(data: dict):
+    """(train, val, test) :class:`TrainingSplit` s for a ``data`` section of ``python -m vpr_nb.train``.
+
+    ``pitts``: ``root`` is the Pittsburgh folder holding ``datasets/pitts30k_{train,val,test}.mat``;
+    ``gmberton``: ``root`` holds ``images/{train,val,test}``; ``msls``: ``root`` holds ``train_val``
+    (train cities for training, the official val subset for val and test); ``gsv-cities``: training
+    places only, validated and tested on ``data.val_root`` (an MSLS folder). ``image_size`` is (H, W).
+    """
+    fmt, root = data.get("format"), data.get("root")
+    if not root:
+        raise ValueError(f"data.root is required for format {fmt!r}")
+    root = Path(root)
+    size = tuple(data.get("image_size") or (480, 640))
+    check = data.get("check_files", True)
+    if fmt == "pitts":
+        parts = [load(root / _SPLIT_FILES["pitts"][s], "pitts", check_files=check) for s in ("train", "val", "test")]
+    elif fmt == "gmberton":
+        parts = [load(root, "gmberton", split=s, check_files=check) for s in ("train", "val", "test")]
+    elif fmt == "msls":
+        val = load(root, "msls", cities="val", val_subset="official", check_files=check)
+        parts = [load(root, "msls", cities="train", check_files=check), val, val]
+    elif fmt == "gsv-cities":
+        if not data.get("val_root"):
+            raise ValueError("gsv-cities is a training set only: set data.val_root to an MSLS folder for val/test")
+        val = load(data["val_root"], "msls", cities="val", val_subset="official", check_files=check)
+        parts = [load(root, "gsv-cities", check_files=check), val, val]
+    elif fmt == "nordland":
+        nord = load(root, "nordland", check_files=check)
+        parts = [nord, nord, nord]
+    else:
+        raise ValueError(f"unknown data.format {fmt!r}; choose pitts, gmberton, msls, gsv-cities or nordland")
+    return tuple(TrainingSplit(p, size) for p in parts)

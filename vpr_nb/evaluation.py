@@ -122,6 +122,17 @@ def images_to_tensor(images) -> torch.Tensor:
     return (x - mean) / std
 
 
+def as_image_array(images):
+    """``images`` as an indexable ``(N, H, W, 3)`` uint8 array: numpy arrays (and lists) as numpy,
+    lazy on-disk arrays (:class:`vpr_nb.datasets.ImageArray`, anything with ``shape``, ``dtype``
+    and ``__getitem__``) as they are, so that only the indexed images are read."""
+    if isinstance(images, np.ndarray):
+        return images
+    if hasattr(images, "shape") and hasattr(images, "__getitem__") and hasattr(images, "dtype"):
+        return images
+    return np.asarray(images)
+
+
 @torch.no_grad()
 def compute_descriptors(model: torch.nn.Module, images, batch_size: int = 256, device=None) -> np.ndarray:
     """Run ``model`` in eval mode over uint8 images (N, H, W, 3) and return float32 descriptors (N, D).
@@ -129,8 +140,8 @@ def compute_descriptors(model: torch.nn.Module, images, batch_size: int = 256, d
     The model's training/eval mode is restored afterwards.
     """
     batch_size = check_int(batch_size, "batch_size")
-    arr = np.asarray(images)
-    if arr.ndim != 4 or arr.shape[0] == 0:
+    arr = as_image_array(images)
+    if len(arr.shape) != 4 or arr.shape[0] == 0:
         raise ValueError(f"images must be a non-empty (N, H, W, 3) array, got shape {arr.shape}")
     if device is None:
         device = next(model.parameters()).device

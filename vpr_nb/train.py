@@ -127,8 +127,8 @@ def load_data(data: dict):
     if not data.get("root"):
         raise ValueError(f"preset needs the dataset location: --set data.root=/path/to/{data['format']} "
                          "(see README, 'Real datasets')")
-    from . import datasets
-    return datasets.load_splits(data)
+    from .datasets import load_splits
+    return load_splits(data)
 
 
 def build_source(src: dict, train_split):

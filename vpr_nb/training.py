@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 
 from . import losses as L
 from ._checks import check_int, check_positive
-from .evaluation import compute_descriptors, evaluate_model, images_to_tensor
+from .evaluation import as_image_array, compute_descriptors, evaluate_model, images_to_tensor
 from .mining import mine_triplets
 
 TRIPLET_LOSSES = ("triplet", "weighted", "ce", "dw")
@@ -232,7 +232,7 @@ class PlaceBatchSource:
 
     def __init__(self, images, make_batches: Callable, *, alpha: float = 1.0, beta: float = 50.0,
                  base: float = 0.0, miner_epsilon: float | None = 0.1):
-        self.x = np.asarray(images)
+        self.x = as_image_array(images)
         images_to_tensor(self.x[:1])           # validates shape and dtype
         if not callable(make_batches):
             raise ValueError("make_batches must be a callable (model, epoch, rng) -> (num_batches, P, K) indices")
