@@ -88,7 +88,27 @@ def test_real_format_split_trains_and_evaluates():
     model = build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
     assert compute_descriptors(model, split.db_images).shape == (len(split.db_images), 16)
     source = TripletSource(split, batch_size=2, num_negatives=1, num_candidates=10)
-    hist = train(model, source, split, TrainConfig(epochs=1, ns=(1, 2)), progress=False)
-    assert len(hist.epochs) == 1 and set(evaluate_model(model, split, ns=(1, 2))) == {1, 2}
+    with pytest.warns(UserWarning, match="no positive"):        # the fixture has a query without positives
+        hist = train(model, source, split, TrainConfig(epochs=1, ns=(1, 2)), progress=False)
+        assert len(hist.epochs) == 1 and set(evaluate_model(model, split, ns=(1, 2))) == {1, 2}
     with pytest.raises(ValueError, match="fixed size"):
         ImageArray(split.geo.db_paths, None)
+
+
+def test_evaluate_a_run_and_another_dataset(tmp_path):
+    from vpr_nb.evaluate import main as evaluate_main
+    _run(SMALL[:-5] + ["--set", "train.epochs=1", "--no-progress"], tmp_path / "run")
+    assert evaluate_main(["--run", str(tmp_path / "run"), "--out", str(tmp_path / "ev"), "--predictions"]) == 0
+    rec = json.loads((tmp_path / "ev" / "recalls.json").read_text())
+    assert set(rec["recall"]) == {"1", "5", "10", "20"} and all(0 <= v <= 1 for v in rec["recall"].values())
+    rows = (tmp_path / "ev" / "predictions.csv").read_text().splitlines()
+    assert len(rows) == rec["num_queries"] + 1 and (tmp_path / "ev" / "retrieval_grid.png").stat().st_size > 0
+    # the same weights on a real-format fixture (gmberton layout), test split only
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / "data_fixtures" / "gmberton" / "pitts30k"
+    with pytest.warns(UserWarning, match="no positive"):
+        assert evaluate_main(["--run", str(tmp_path / "run"), "--out", str(tmp_path / "ev2"), "--set",
+                              "data.format=gmberton", "--set", f"data.root={root}", "--set", "data.image_size=[16,24]"]) == 0
+    rec2 = json.loads((tmp_path / "ev2" / "recalls.json").read_text())
+    assert rec2["num_queries"] == 3
+    assert evaluate_main(["--run", str(tmp_path / "nowhere"), "--out", str(tmp_path / "ev3")]) == 2

@@ -980,14 +980,18 @@ _SPLIT_FILES = {"pitts": {"train": "datasets/pitts30k_train.mat", "val": "datase
                           "test": "datasets/pitts30k_test.mat"}}
 
 
-def load_splits(data: dict):
+def load_splits(data: dict, splits: Sequence[str] = ("train", "val", "test")):
     """(train, val, test) :class:`TrainingSplit` s for a ``data`` section of ``python -m vpr_nb.train``.
 
     ``pitts``: ``root`` is the Pittsburgh folder holding ``datasets/pitts30k_{train,val,test}.mat``;
     ``gmberton``: ``root`` holds ``images/{train,val,test}``; ``msls``: ``root`` holds ``train_val``
     (train cities for training, the official val subset for val and test); ``gsv-cities``: training
     places only, validated and tested on ``data.val_root`` (an MSLS folder). ``image_size`` is (H, W).
+    Splits not named in ``splits`` are not loaded and come back as ``None``.
     """
+    bad = [s for s in splits if s not in ("train", "val", "test")]
+    if bad:
+        raise ValueError(f"splits must be among train, val, test; got {bad}")
     fmt, root = data.get("format"), data.get("root")
     if not root:
         raise ValueError(f"data.root is required for format {fmt!r}")
@@ -995,9 +999,11 @@ def load_splits(data: dict):
     size = tuple(data.get("image_size") or (480, 640))
     check = data.get("check_files", True)
     if fmt == "pitts":
-        parts = [load(root / _SPLIT_FILES["pitts"][s], "pitts", check_files=check) for s in ("train", "val", "test")]
+        parts = [load(root / _SPLIT_FILES["pitts"][s], "pitts", check_files=check) if s in splits else None
+                 for s in ("train", "val", "test")]
     elif fmt == "gmberton":
-        parts = [load(root, "gmberton", split=s, check_files=check) for s in ("train", "val", "test")]
+        parts = [load(root, "gmberton", split=s, check_files=check) if s in splits else None
+                 for s in ("train", "val", "test")]
     elif fmt == "msls":
         val = load(root, "msls", cities="val", val_subset="official", check_files=check)
         parts = [load(root, "msls", cities="train", check_files=check), val, val]
@@ -1011,4 +1017,5 @@ def load_splits(data: dict):
         parts = [nord, nord, nord]
     else:
         raise ValueError(f"unknown data.format {fmt!r}; choose pitts, gmberton, msls, gsv-cities or nordland")
-    return tuple(TrainingSplit(p, size) for p in parts)
+    return tuple(TrainingSplit(p, size) if p is not None and name in splits else None
+                 for name, p in zip(("train", "val", "test"), parts))

@@ -112,14 +112,14 @@ def resolve_config(preset: str, overrides=()) -> dict:
         if section not in cfg:
             raise ValueError(f"unknown config section {section!r} in {item!r}; sections: {', '.join(cfg)}")
         known = set(cfg[section]) | (train_keys if section == "train" else set())
-        if name not in known:
+        if name not in known and section != "data":     # data options differ per format (see load_splits)
             raise ValueError(f"unknown key {name!r} in section {section!r}; known keys: {', '.join(sorted(known))}")
         cfg[section][name] = parse_value(value)
     return {"preset": preset, **cfg}
 
 
-def load_data(data: dict):
-    """(train, val, test) splits for the ``data`` section."""
+def load_data(data: dict, splits=("train", "val", "test")):
+    """(train, val, test) splits for the ``data`` section (real formats: only ``splits`` are loaded)."""
     if data["format"] == "synthetic":
         from .synthetic import make_dataset
         ds = make_dataset(data["preset"], data["seed"], data.get("size", "tiny"), **(data.get("overrides") or {}))
@@ -128,7 +128,7 @@ def load_data(data: dict):
         raise ValueError(f"preset needs the dataset location: --set data.root=/path/to/{data['format']} "
                          "(see README, 'Real datasets')")
     from .datasets import load_splits
-    return load_splits(data)
+    return load_splits(data, splits)
 
 
 def build_source(src: dict, train_split):
