@@ -112,3 +112,30 @@ def test_evaluate_a_run_and_another_dataset(tmp_path):
     rec2 = json.loads((tmp_path / "ev2" / "recalls.json").read_text())
     assert rec2["num_queries"] == 3
     assert evaluate_main(["--run", str(tmp_path / "nowhere"), "--out", str(tmp_path / "ev3")]) == 2
+
+
+@pytest.mark.parametrize("sampler", ["random", "clique"])
+def test_place_samplers_train(sampler):
+    import numpy as np
+
+    from vpr_nb import seed_everything
+    from vpr_nb.models import build_model
+    from vpr_nb.synthetic import make_dataset
+    from vpr_nb.train import build_source
+    from vpr_nb.training import TrainConfig, train
+
+    ds = make_dataset("route", 0, num_frames=200, image_size=(16, 24))
+    src = dict(resolve_config("synthetic-route-ms")["source"], sampler=sampler, places_per_batch=4,
+               images_per_place=4, batches_per_epoch=2)
+    source = build_source(src, ds.train)
+    batches = source.make_batches(None if sampler == "random" else build_model("small_cnn", "gem"), 0,
+                                  np.random.default_rng(0))
+    assert batches.shape == (2, 4, 4) and len(np.unique(batches[0])) == 16
+    seed_everything(0)
+    model = build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
+    hist = train(model, source, ds.val, TrainConfig(epochs=1, optimizer="adam", lr=1e-3), progress=False)
+    assert np.isfinite(hist.losses).all()
+    with pytest.raises(ValueError, match="sampler"):
+        build_source(dict(src, sampler="nearest"), ds.train)
+    with pytest.raises(ValueError, match="gsv_root|GSV"):
+        build_source(dict(src, sampler="clique+random"), ds.train)

@@ -131,24 +131,93 @@ def load_data(data: dict, splits=("train", "val", "test")):
     return load_splits(data, splits)
 
 
-def build_source(src: dict, train_split):
-    """The batch source of the ``source`` section."""
+def _place_pool(split):
+    """(images, groups, utm) of the training images that carry a place id (database, then queries)."""
+    import numpy as np
+    geo = getattr(split, "geo", None)
+    has_q = split.q_images is not None and split.q_place is not None and len(split.q_utm) > 0
+    groups = np.concatenate([split.db_place, split.q_place]) if has_q else np.asarray(split.db_place)
+    utm = np.concatenate([split.db_utm, split.q_utm]) if has_q else np.asarray(split.db_utm)
+    if geo is not None:
+        from .datasets import ImageArray
+        images = ImageArray(list(geo.db_paths) + (list(geo.q_paths) if has_q else []), split.db_images.size)
+    else:
+        images = np.concatenate([split.db_images, split.q_images]) if has_q else split.db_images
+    if groups is None or len(groups) != len(utm):
+        raise ValueError("place batches need place ids (db_place/q_place) for every training image")
+    return images, np.asarray(groups, dtype=np.int64), utm
+
+
+def _clique_sampler(images, groups, utm, opts, per_epoch):
+    """CliqueMining batches on one pool; group descriptors from one random image per place, recomputed
+    every ``refresh_every`` epochs (0 = once, as the published code)."""
+    import numpy as np
+    from .evaluation import compute_descriptors
+    from .mining import clique_batches
+    sub = np.flatnonzero(groups >= 0)
+    _, gid = np.unique(groups[sub], return_inverse=True)
+    refresh = int(opts.get("refresh_every", 0))
+    cache = {}
+
+    def make(model, epoch, rng, places):
+        key = 0 if refresh == 0 else epoch // refresh
+        if key not in cache:
+            cache.clear()
+            order = rng.permutation(len(sub))
+            first = np.full(gid.max() + 1, -1)
+            first[gid[order[::-1]]] = order[::-1]          # one random image per place
+            cache[key] = compute_descriptors(getattr(model, "module", model), images[sub[first]])
+        b = clique_batches(utm[sub], gid, cache[key], places, opts["images_per_place"],
+                           same_place_threshold=opts.get("same_place_threshold", 25.0),
+                           similar_groups=opts.get("similar_groups", 15), num_batches=per_epoch,
+                           seed=int(rng.integers(2**31)))
+        return sub[b]
+    return make
+
+
+def build_source(src: dict, train_split, extra_split=None):
+    """The batch source of the ``source`` section (``extra_split``: the GSV-Cities pool of
+    ``sampler="clique+random"``, which mixes random GSV places with clique places of the main split)."""
+    import numpy as np
+    from .mining import random_place_batches
     opts = {k: v for k, v in src.items() if k != "kind"}
     if src["kind"] == "triplet":
         return TripletSource(train_split, **opts)
     if src["kind"] != "places":
         raise ValueError(f"source.kind must be 'triplet' or 'places', got {src['kind']!r}")
-    import numpy as np
-    from .mining import random_place_batches
-    images = np.concatenate([train_split.db_images, train_split.q_images])
-    groups = np.concatenate([train_split.db_place, train_split.q_place])
-    if opts.get("sampler", "random") != "random":
-        raise ValueError(f"source.sampler {opts['sampler']!r} needs the real-data pipeline (datasets.load_splits)")
-    per_epoch = opts.get("batches_per_epoch", 20)
+    sampler = opts.get("sampler", "random")
+    per_epoch = int(opts.get("batches_per_epoch", 20))
+    k = opts["images_per_place"]
+    images, groups, utm = _place_pool(train_split)
+    if sampler == "random":
+        valid = np.flatnonzero(groups >= 0)
 
-    def make_batches(model, epoch, rng):
-        return random_place_batches(groups, opts["places_per_batch"], opts["images_per_place"],
-                                    num_batches=per_epoch, seed=int(rng.integers(2**31)))
+        def make_batches(model, epoch, rng):
+            return valid[random_place_batches(groups[valid], opts["places_per_batch"], k, num_batches=per_epoch,
+                                              seed=int(rng.integers(2**31)))]
+    elif sampler == "clique":
+        clique = _clique_sampler(images, groups, utm, opts, per_epoch)
+
+        def make_batches(model, epoch, rng):
+            return clique(model, epoch, rng, opts["places_per_batch"])
+    elif sampler == "clique+random":
+        if extra_split is None:
+            raise ValueError("sampler 'clique+random' needs the GSV-Cities pool: set data.gsv_root")
+        g_images, g_groups, _ = _place_pool(extra_split)
+        from .datasets import ImageArray
+        if not (isinstance(images, ImageArray) and isinstance(g_images, ImageArray)):
+            raise ValueError("sampler 'clique+random' mixes two on-disk datasets (MSLS + GSV-Cities)")
+        n_c = int(opts.get("clique_places", opts["places_per_batch"] // 2))
+        clique = _clique_sampler(images, groups, utm, opts, per_epoch)
+        offset = len(images)
+        images = ImageArray(images.paths + g_images.paths, images.size)
+
+        def make_batches(model, epoch, rng):
+            rand = random_place_batches(g_groups, opts["places_per_batch"] - n_c, k, num_batches=per_epoch,
+                                        seed=int(rng.integers(2**31)))
+            return np.concatenate([rand + offset, clique(model, epoch, rng, n_c)], axis=1)
+    else:
+        raise ValueError(f"source.sampler must be 'random', 'clique' or 'clique+random', got {sampler!r}")
     return PlaceBatchSource(images, make_batches, alpha=opts["alpha"], beta=opts["beta"], base=opts["base"],
                             miner_epsilon=opts["miner_epsilon"])
 
@@ -164,7 +233,15 @@ def run(cfg: dict, out: Path | None, progress: bool = True) -> dict:
     m = cfg["model"]
     model = build_model(m["backbone"], m["aggregator"], backbone_kwargs=m["backbone_kwargs"] or None,
                         **m["aggregator_kwargs"])
-    source = build_source(cfg["source"], train_split)
+    extra = None
+    if cfg["source"].get("sampler") == "clique+random":
+        from .datasets import TrainingSplit, load
+        gsv = cfg["data"].get("gsv_root")
+        if not gsv:
+            raise ValueError("salad-cliquemining-msls needs data.gsv_root (the GSV-Cities folder) besides data.root (MSLS)")
+        extra = TrainingSplit(load(gsv, "gsv-cities", check_files=cfg["data"].get("check_files", True)),
+                              tuple(cfg["data"]["image_size"]))
+    source = build_source(cfg["source"], train_split, extra)
     history = train(model, source, val_split, config, checkpoint_dir=None if out is None else out / "checkpoints",
                     progress=progress)
     test = evaluate_model(model, test_split, ns=config.ns)
