@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 PROFILE ?= reproduce
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with notebooks/sanitize.cfg --nbval-cell-timeout 600
 
-.PHONY: venv test test-fast reproduce lab bench clean
+.PHONY: venv test test-fast reproduce lab bench clean assignments
 
 venv: $(STAMP)
 
@@ -28,6 +28,9 @@ test-fast: venv
 reproduce: venv
 	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports
 
+assignments: venv
+	$(BIN)/python -m vpr_nb.assignments generate notebooks assignments
+
 lab: venv
 	$(BIN)/jupyter lab notebooks
 
@@ -35,4 +38,4 @@ bench: venv
 	for f in bench/bench_*.py; do echo "== $$f"; $(BIN)/python $$f --quick || exit 1; done
 
 clean:
-	rm -rf reports .pytest_cache
+	rm -rf reports assignments .pytest_cache
