@@ -308,3 +308,37 @@ def test_topk_bad_inputs():
         topk_order_agreement(d, d, u, u[:4], k=2)
     with pytest.raises(ValueError, match="must have 3 columns"):
         topk_order_agreement(d, d[:, :2], u, u, k=2)
+
+
+def test_query_topk_pure_function():
+    from vpr_nb.gds import query_topk
+
+    # 1-D world: db at x = 0..9, descriptor = x (so the ranking is by |x - xq|), query at x = 3.2
+    du = np.stack([np.arange(10.0), np.zeros(10)], 1)
+    dbd = du[:, :1].astype(np.float32)
+    qu = np.array([[3.2, 0.0], [0.0, 0.0]])
+    qd = np.array([[3.2], [9.0]], np.float32)
+    res = query_topk(qd, dbd, qu, du, 0, k=4, pos_radius=1.0)
+    np.testing.assert_array_equal(res.db_index, [3, 4, 2, 5])
+    np.testing.assert_allclose(res.geo_distance, [0.2, 0.8, 1.2, 1.8], rtol=1e-6)
+    np.testing.assert_allclose(res.desc_distance, [0.2, 0.8, 1.2, 1.8], rtol=1e-6)
+    np.testing.assert_array_equal(res.is_positive, [True, True, False, False])
+    assert res.fraction_correct == 1.0
+    assert "rank" in res.table() and len(res.table().splitlines()) == 6
+    # query 1 looks like x = 9 but stands at x = 0: the top-3 are sorted backwards
+    res = query_topk(qd, dbd, qu, du, 1, k=3)
+    np.testing.assert_array_equal(res.db_index, [9, 8, 7])
+    assert res.fraction_correct == 0.0 and not res.is_positive.any()
+    # it agrees with topk_order_agreement on a random world
+    rng = np.random.default_rng(0)
+    d2, u2 = rng.normal(size=(40, 5)).astype(np.float32), rng.uniform(0, 50, (40, 2))
+    agg = topk_order_agreement(d2[:10], d2[10:], u2[:10], u2[10:], k=5)
+    for q in range(10):
+        r = query_topk(d2[:10], d2[10:], u2[:10], u2[10:], q, k=5)
+        np.testing.assert_array_equal(r.db_index, agg.topk[q])
+        assert r.fraction_correct == pytest.approx(agg.fraction_correct[q])
+    for bad in (dict(query=10), dict(query=-1), dict(k=0), dict(k=31), dict(pos_radius=0.0)):
+        with pytest.raises(ValueError):
+            query_topk(d2[:10], d2[10:], u2[:10], u2[10:], **{**dict(query=0, k=3), **bad})
+    with pytest.raises(ValueError):
+        query_topk(d2[:10], d2[10:, :3], u2[:10], u2[10:], 0)

@@ -443,3 +443,65 @@ def topk_order_agreement(q_desc, db_desc, q_utm, db_utm, k: int = 10) -> OrderAg
     return OrderAgreement(topk=topk, topk_geo=geo, fraction_correct=fraction, kendall_tau=tau,
                           mean_fraction_correct=float(fraction.mean()),
                           mean_kendall_tau=float(tau[finite].mean()) if finite.any() else float("nan"))
+
+
+@dataclass(frozen=True, eq=False)
+class QueryTopK:
+    """The top-k retrievals of one query with their true geographic distances.
+
+    Attributes:
+        query: the query index.
+        db_index: ``(k,)`` database indices, nearest descriptor first.
+        desc_distance: ``(k,)`` Euclidean descriptor distances.
+        geo_distance: ``(k,)`` geographic distances (m) from the query.
+        is_positive: ``(k,)`` True where ``geo_distance <= pos_radius`` (all False without a radius).
+        fraction_correct: fraction of retrieval pairs ``(a, b)``, ``a`` ranked before ``b``, with
+            ``geo(a) <= geo(b)`` (as in :func:`topk_order_agreement`).
+    """
+
+    query: int
+    db_index: np.ndarray
+    desc_distance: np.ndarray
+    geo_distance: np.ndarray
+    is_positive: np.ndarray
+    fraction_correct: float
+
+    def table(self) -> str:
+        """The retrievals as a fixed-width text table (rank, db index, descriptor and geographic distance)."""
+        lines = [f"query {self.query}: {self.fraction_correct:.3f} of the top-{len(self.db_index)} pairs sorted by distance",
+                 "rank  db index  desc dist  geo dist (m)  positive"]
+        for r, (i, dd, g, p) in enumerate(zip(self.db_index, self.desc_distance, self.geo_distance, self.is_positive)):
+            lines.append(f"{r + 1:>4}  {i:>8}  {dd:>9.3f}  {g:>12.1f}  {'yes' if p else 'no':>8}")
+        return "\n".join(lines)
+
+
+def query_topk(q_desc, db_desc, q_utm, db_utm, query: int, k: int = 5, pos_radius: float | None = None) -> QueryTopK:
+    """Top-k database images of query ``query`` by descriptor distance, with their geographic distances.
+
+    The pure function behind the notebook's query-picker widget: exact Euclidean search (ties
+    broken by database index), then the true distance of every retrieval and whether the top-k is
+    sorted by it (CliqueMining's "close, but not there": the nearest image should come first).
+    """
+    qd = as_float_matrix(q_desc, "q_desc")
+    dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
+    qu = as_utm(q_utm, "q_utm")
+    du = as_utm(db_utm, "db_utm")
+    if len(qu) != len(qd):
+        raise ValueError(f"q_utm has {len(qu)} rows but q_desc has {len(qd)}")
+    if len(du) != len(dbd):
+        raise ValueError(f"db_utm has {len(du)} rows but db_desc has {len(dbd)}")
+    query = check_int(query, "query", minimum=0, maximum=len(qd) - 1)
+    k = check_int(k, "k", minimum=1, maximum=len(dbd))
+    if pos_radius is not None:
+        pos_radius = check_positive(pos_radius, "pos_radius")
+    diff = dbd.astype(np.float64) - qd[query].astype(np.float64)
+    desc = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    top = np.argsort(desc, kind="stable")[:k]
+    geo = np.sqrt(((du[top] - qu[query]) ** 2).sum(axis=1))
+    if k >= 2:
+        fraction = float(_order_stats(geo[None])[0][0])
+    else:
+        fraction = 1.0
+    pos = np.zeros(k, dtype=bool) if pos_radius is None else geo <= pos_radius
+    return QueryTopK(query=query, db_index=top.astype(np.int64), desc_distance=desc[top], geo_distance=geo,
+                     is_positive=pos, fraction_correct=fraction)

@@ -2,6 +2,8 @@
 
 * :func:`clique_batches` -- CliqueMining (Izquierdo & Civera, ECCV 2024): batches of places that
   are visually similar yet geographically separated, found as cliques of a geographic graph.
+* :class:`CliqueBatchMaker` -- CliqueMining batches for the training loop, with group descriptors
+  from the current model computed once (the original) or refreshed every E epochs.
 * :func:`random_place_batches` -- the GSV-Cities baseline: random places, random images of each.
 * :func:`mine_triplets` -- NetVLAD (Arandjelovic et al., CVPR 2016) weakly supervised triplets:
   best positive within 10 m, hardest negatives beyond 25 m, with a per-query negative cache.
@@ -113,7 +115,8 @@ class _CliqueMiner:
         is equal) are drawn uniformly, only after every positive-weight group.
         """
         k = self.k_similar
-        d2 = self.sqnorm + self.sqnorm[anchor] - 2.0 * (self.desc @ self.desc[anchor])
+        # einsum, not ``@``: a multi-threaded BLAS gemv is ~50x slower on an oversubscribed machine
+        d2 = self.sqnorm + self.sqnorm[anchor] - 2.0 * np.einsum("ij,j->i", self.desc, self.desc[anchor])
         d = np.sqrt(np.maximum(d2, 0.0))
         w = d.max() - d
         e = rng.standard_exponential(len(w))
@@ -172,10 +175,13 @@ class _CliqueMiner:
             clique = _grow_clique([v], cand, adj, self.m)
             if clique is None:
                 continue
-            common = [u for u in cand if u not in clique and all(u in adj(c) for c in clique)]
+            common = set(cand)  # alive neighbours of v that are adjacent to the whole clique
+            for c in clique[1:]:
+                common &= adj(c)
             while common:  # grow to a maximal clique, smallest index first
-                clique.append(common[0])
-                common = [u for u in common[1:] if u in adj(common[0])]
+                u = min(common)
+                clique.append(u)
+                common &= adj(u)  # u has no self-loop, so it leaves ``common``
             chosen = rng.choice(np.sort(clique), self.m, replace=False)
             found.append(pool[chosen])
             alive[chosen] = False
@@ -302,6 +308,74 @@ def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images
     with ctx.Pool(num_workers, initializer=_init_worker, initargs=(miner,)) as pool:
         parts = pool.map(_mine_in_worker, [[(int(i), seeds[i]) for i in c] for c in chunks])
     return np.concatenate(parts).astype(np.int64)
+
+
+def sample_group_descriptors(descriptors, groups, seed: int | np.random.Generator = 0) -> np.ndarray:
+    """One descriptor per place group: that of one random image of the group (CliqueMining's
+    ``compute_cluster_descriptors``, which samples one image per ``unique_cluster``).
+
+    Args:
+        descriptors: ``(N, D)`` image descriptors.
+        groups: ``(N,)`` non-negative group id of each image.
+        seed: int seed or Generator choosing the image of each group.
+
+    Returns:
+        float32 ``(max(groups) + 1, D)``; rows of ids without images are zero.
+    """
+    desc = as_float_matrix(descriptors, "descriptors")
+    groups = _as_groups(groups, len(desc))
+    rng = _as_rng(seed)
+    order, starts = _group_index(groups)
+    sizes = np.diff(starts)
+    present = np.flatnonzero(sizes > 0)
+    pick = order[starts[present] + (rng.random(len(present)) * sizes[present]).astype(np.int64)]
+    out = np.zeros((len(sizes), desc.shape[1]), dtype=np.float32)
+    out[present] = desc[pick]
+    return out
+
+
+class CliqueBatchMaker:
+    """``make_batches(model, epoch, rng)`` for :class:`vpr_nb.training.PlaceBatchSource` with CliqueMining.
+
+    The group descriptors come from ``model`` (one random image per group, as in the original code).
+    ``refresh_every=None`` computes them once, at the first call, and keeps them for the whole run
+    (the original: descriptors of the pre-trained model, computed once, offline);
+    ``refresh_every=E`` recomputes them with the current model at every epoch that is a multiple of E.
+    Each call mines ``num_batches`` fresh batches with :func:`clique_batches`, seeded from ``rng``.
+
+    Attributes:
+        refreshed_at: epochs at which the descriptors were (re)computed.
+    """
+
+    def __init__(self, images, utm, groups, places_per_batch: int, num_batches: int, *,
+                 images_per_place: int = 4, same_place_threshold: float = 25.0, similar_groups: int = 15,
+                 refresh_every: int | None = None, num_workers: int = 1):
+        self.images = np.asarray(images)
+        self.utm = as_utm(utm, "utm")
+        self.groups = _as_groups(groups, len(self.utm))
+        if len(self.images) != len(self.utm):
+            raise ValueError(f"images has {len(self.images)} entries but utm has {len(self.utm)}: one geotag per image")
+        self.kwargs = dict(places_per_batch=check_int(places_per_batch, "places_per_batch"),
+                           images_per_place=check_int(images_per_place, "images_per_place", minimum=2),
+                           same_place_threshold=check_positive(same_place_threshold, "same_place_threshold"),
+                           similar_groups=check_int(similar_groups, "similar_groups", minimum=0),
+                           num_batches=check_int(num_batches, "num_batches"),
+                           num_workers=check_int(num_workers, "num_workers"))
+        self.refresh_every = None if refresh_every is None else check_int(refresh_every, "refresh_every")
+        self.group_descriptors: np.ndarray | None = None
+        self.refreshed_at: list[int] = []
+
+    def __call__(self, model, epoch: int, rng: np.random.Generator) -> np.ndarray:
+        from vpr_nb.evaluation import compute_descriptors
+
+        rng = _as_rng(rng)
+        due = self.refresh_every is not None and epoch % self.refresh_every == 0
+        if self.group_descriptors is None or (due and epoch not in self.refreshed_at):
+            desc = compute_descriptors(model, self.images)  # restores the model's train/eval mode
+            self.group_descriptors = sample_group_descriptors(desc, self.groups, rng)
+            self.refreshed_at.append(int(epoch))
+        return clique_batches(self.utm, self.groups, self.group_descriptors,
+                              seed=int(rng.integers(2**63)), **self.kwargs)
 
 
 # ----------------------------------------------------------------------------- random baseline
