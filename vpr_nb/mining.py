@@ -261,8 +261,8 @@ def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images
       so the output does not depend on ``num_workers`` (the original seeds from pid and time).
 
     The group descriptors are used as given: the original computes them once, offline, with the
-    pre-trained model. To refresh them every E epochs, the training loop recomputes the
-    descriptors of the current model and calls this function again.
+    pre-trained model. :class:`CliqueBatchMaker` wraps this function for the training loop and
+    either computes them once or refreshes them with the current model every E epochs.
 
     Args:
         utm: ``(N, 2)`` UTM positions in metres, one per image.

@@ -1,11 +1,9 @@
 """Builder of notebooks/06_gds.ipynb.
 
 Run ``python notebooks/build/06_gds.py`` to (re)write the notebook from the cell sources below, then
-execute it in place with nbconvert (see the Makefile).
+execute it in place with nbconvert (see the Makefile); cells are assembled by ``_nb.py``.
 """
-from pathlib import Path
-
-import nbformat
+from _nb import write
 
 NAME = "06_gds"
 
@@ -266,6 +264,26 @@ record("06_gds", {
 })
 """),
     ("md", r"""
+## Graded exercise: Eq. (3) by hand
+
+Write `misorder_gaussian(mu1, sd1, mu2, sd2)`, the Gaussian mis-ordering probability of Eq. (3) for two
+bins with means `mu1, mu2` and standard deviations `sd1, sd2` (use `scipy.special.ndtr` for $\Phi$).
+"""),
+    ("solution", r"""
+def misorder_gaussian(mu1, sd1, mu2, sd2):
+    ### BEGIN SOLUTION
+    return float(ndtr((mu1 - mu2) / np.sqrt(sd1 ** 2 + sd2 ** 2)))
+    ### END SOLUTION
+""", "ex-06-misorder"),
+    ("tests", r"""
+assert abs(misorder_gaussian(0.5, 0.1, 0.5, 0.1) - 0.5) < 1e-9
+assert abs(misorder_gaussian(prof_t.mean[0], prof_t.std[0], prof_t.mean[2], prof_t.std[2])
+           - misordering_probability(prof_t, 0.0, 10.0)) < 1e-6
+### BEGIN HIDDEN TESTS
+assert misorder_gaussian(1.0, 0.1, 0.0, 0.1) > 0.99 and misorder_gaussian(0.0, 0.1, 1.0, 0.1) < 0.01
+### END HIDDEN TESTS
+""", "ex-06-misorder", 1),
+    ("md", r"""
 ## Exercises
 
 1. **Bin width.** Recompute the profile with `bin_width=2.5`. Why do every other bin empty out on the route,
@@ -291,23 +309,5 @@ record("06_gds", {
 ]
 
 
-def build() -> nbformat.NotebookNode:
-    """Assemble the notebook (nbformat v4) from ``CELLS``."""
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    nb.metadata["language_info"] = {"name": "python"}
-    for cell in CELLS:
-        kind, src = cell[0], cell[1].strip("\n")
-        new = nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
-        if len(cell) > 2:
-            new.metadata["tags"] = list(cell[2])
-        nb.cells.append(new)
-    for k, c in enumerate(nb.cells):  # stable ids keep diffs small between rebuilds
-        c["id"] = f"{NAME[:2]}-{k:02d}"
-    return nb
-
-
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / f"{NAME}.ipynb"
-    nbformat.write(build(), out)
-    print("wrote", out.name)
+    write(NAME, CELLS)

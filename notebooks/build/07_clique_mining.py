@@ -1,11 +1,9 @@
 """Builder of notebooks/07_clique_mining.ipynb.
 
 Run ``python notebooks/build/07_clique_mining.py`` to (re)write the notebook from the cell sources below,
-then execute it in place with nbconvert (see the Makefile).
+then execute it in place with nbconvert (see the Makefile); cells are assembled by ``_nb.py``.
 """
-from pathlib import Path
-
-import nbformat
+from _nb import write
 
 NAME = "07_clique_mining"
 
@@ -295,6 +293,28 @@ record("07_clique_mining", {"profile": PROFILE, "seeds": len(SEEDS), "epochs": E
                             "results (mean, std)": table, "verdict": verdict})
 """),
     ("md", r"""
+## Graded exercise: the hardest geographic negative of a batch
+
+Write `min_other_place_distance(batch, utm)`: the smallest geographic distance between two images that
+belong to *different* places of one batch `(P, K)`. For a clique batch it must be $\ge \tau$.
+"""),
+    ("solution", r"""
+def min_other_place_distance(batch, utm):
+    ### BEGIN SOLUTION
+    pts = utm[batch]                                                   # (P, K, 2)
+    dist = np.linalg.norm(pts[:, None, :, None] - pts[None, :, None, :], axis=-1)   # (P, P, K, K)
+    return float(dist[~np.eye(len(batch), dtype=bool)].min())
+    ### END SOLUTION
+""", "ex-07-hardest"),
+    ("tests", r"""
+assert min_other_place_distance(cb[0], d["utm"]) >= THRESHOLD["city"]
+assert abs(min_other_place_distance(rb[0], d["utm"]) - nearest_other_place(rb[:1], d["utm"]).min()) < 1e-9
+### BEGIN HIDDEN TESTS
+toy = np.array([[0.0, 0.0], [1.0, 0.0], [30.0, 0.0], [31.0, 0.0]])
+assert abs(min_other_place_distance(np.array([[0, 1], [2, 3]]), toy) - 29.0) < 1e-9
+### END HIDDEN TESTS
+""", "ex-07-hardest", 1),
+    ("md", r"""
 **Reading the result.** Whatever the verdict cell says for your profile, keep the scale in mind: the paper
 fine-tunes a strong pre-trained model (DINOv2-SALAD) on MSLS + GSV-Cities for thousands of steps with
 descriptors from a pre-trained SALAD; here a 0.1 M-parameter CNN trains from scratch for a few dozen steps
@@ -331,23 +351,5 @@ its direction, not of its size.
 ]
 
 
-def build() -> nbformat.NotebookNode:
-    """Assemble the notebook (nbformat v4) from ``CELLS``."""
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    nb.metadata["language_info"] = {"name": "python"}
-    for cell in CELLS:
-        kind, src = cell[0], cell[1].strip("\n")
-        new = nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
-        if len(cell) > 2:
-            new.metadata["tags"] = list(cell[2])
-        nb.cells.append(new)
-    for k, c in enumerate(nb.cells):  # stable ids keep diffs small between rebuilds
-        c["id"] = f"{NAME[:2]}-{k:02d}"
-    return nb
-
-
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / f"{NAME}.ipynb"
-    nbformat.write(build(), out)
-    print("wrote", out.name)
+    write(NAME, CELLS)
