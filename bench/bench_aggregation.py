@@ -10,6 +10,12 @@ both formulations compute the same function), after one warm-up pass. The baseli
 ``bench/reference_aggregation.py``: NetVLAD with a Python loop over clusters (the public layer's
 formulation), SALAD with the ``repeat``-based aggregation of the published code.
 
+Targets (issue 4): NetVLAD vectorised >= 1.5x faster than the loop; SALAD einsum/bmm >= 2x faster and
+>= 2x less peak memory than the repeat-based aggregation, outputs equal to 1e-5. The script prints
+whether each is met. The SALAD time target is checked on the aggregation step (what the two
+formulations differ in); the whole-layer ratio is printed too: on a CPU the 1x1-conv MLP heads,
+identical in both, take most of the time and cap it (1.35x measured at the full size, 1 thread).
+
 Peak memory: each variant runs one forward+backward pass in a fresh subprocess. On CPU the extra
 memory is the peak resident set (``VmHWM`` from ``/proc/self/status``, reset through
 ``/proc/self/clear_refs`` just before the pass) minus the resident set just before it; on CUDA it is
@@ -112,7 +118,7 @@ def _peak_extra_bytes(variant: str, size: dict, device: str) -> int:
     return int(out.strip().splitlines()[-1])
 
 
-def bench_netvlad(size: dict, repeats: int, device: str) -> None:
+def bench_netvlad(size: dict, repeats: int, device: str) -> dict:
     torch.manual_seed(0)
     layer = NetVLAD(num_clusters=size["clusters"], dim=size["dim"]).to(device)
     x = torch.randn(size["batch"], size["dim"], size["height"], size["width"], device=device, requires_grad=True)
@@ -129,9 +135,12 @@ def bench_netvlad(size: dict, repeats: int, device: str) -> None:
     print(f"  forward+backward: vectorised {t_ours * 1e3:8.1f} ms | per-cluster loop {t_loop * 1e3:8.1f} ms"
           f" | speed-up {t_loop / t_ours:5.2f}x")
     print(f"  max |vectorised - loop| = {diff:.2e}")
+    speedup = t_loop / t_ours
+    print(f"  target >= 1.5x faster and equal to 1e-5: {'met' if speedup >= 1.5 and diff <= 1e-5 else 'NOT met'}")
+    return {"netvlad_speedup": speedup, "netvlad_max_diff": diff}
 
 
-def bench_salad(size: dict, repeats: int, device: str) -> None:
+def bench_salad(size: dict, repeats: int, device: str) -> dict:
     model, features, token = _salad_setup(size, device)
     forwards = _salad_forwards(model, features, token)
     params = [features, *model.parameters()]
@@ -159,6 +168,15 @@ def bench_salad(size: dict, repeats: int, device: str) -> None:
     print(f"  peak extra memory: einsum/bmm {mem_ours / 2**20:8.1f} MiB | repeat-based {mem_ref / 2**20:8.1f} MiB"
           f" | ratio {mem_ref / max(mem_ours, 1):5.2f}x less")
     print(f"  max |ours - repeat-based| = {diff:.2e}")
+    step_speedup, layer_speedup, mem_ratio = t_step_ref / t_step_ours, t_ref / t_ours, mem_ref / max(mem_ours, 1)
+    # The two formulations differ only in the aggregation step; the 1x1-conv MLP heads (identical in
+    # both) dominate the whole-layer time on a CPU, which caps the whole-layer ratio.
+    print(f"  target >= 2x faster (aggregation step): {'met' if step_speedup >= 2 else 'NOT met'}; "
+          f"whole layer {layer_speedup:.2f}x (shared MLP heads included)")
+    print(f"  target >= 2x less peak memory (whole layer): {'met' if mem_ratio >= 2 else 'NOT met'}; "
+          f"outputs equal to 1e-5: {'met' if diff <= 1e-5 else 'NOT met'}")
+    return {"salad_step_speedup": step_speedup, "salad_layer_speedup": layer_speedup,
+            "salad_memory_ratio": mem_ratio, "salad_max_diff": diff}
 
 
 def main() -> None:

@@ -427,7 +427,21 @@ def test_salad_rejects_bad_inputs(x, match):
 
 @pytest.mark.parametrize("kwargs, match", [({"dropout": 1.0}, "dropout"), ({"dropout": -0.1}, "dropout"),
                                            ({"num_clusters": 0}, "num_clusters"),
-                                           ({"cluster_dim": 1.5}, "cluster_dim"), ({"token_dim": None}, "token_dim")])
+                                           ({"cluster_dim": 1.5}, "cluster_dim"), ({"token_dim": None}, "token_dim"),
+                                           ({"hidden_dim": 0}, "hidden_dim")])
 def test_salad_rejects_bad_constructor_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         SALAD(num_channels=16, **kwargs)
+
+
+def test_salad_hidden_dim_sets_the_head_width_and_keeps_the_published_names():
+    torch.manual_seed(6)
+    salad = SALAD(num_channels=32, num_clusters=8, cluster_dim=4, token_dim=6, dropout=0.0, hidden_dim=16)
+    shapes = {k: tuple(v.shape) for k, v in salad.state_dict().items()}
+    assert set(shapes) == set(PUBLISHED_SALAD_SHAPES)
+    assert shapes["score.0.weight"] == (16, 32, 1, 1) and shapes["score.3.weight"] == (8, 16, 1, 1)
+    assert shapes["token_features.0.weight"] == (16, 32) and shapes["cluster_features.3.weight"] == (4, 16, 1, 1)
+    features, token = torch.randn(2, 32, 3, 4), torch.randn(2, 32)
+    ref = salad_reference(dict(salad.named_parameters()), features, token)
+    assert torch.allclose(salad((features, token)), ref, atol=1e-5)
+    assert SALAD().hidden_dim == 512

@@ -313,23 +313,26 @@ class SALAD(nn.Module):
     - output ``L2([L2(token_features(t)), V])`` of size ``token_dim + m·l`` (8448 with the defaults).
 
     ``V`` is one batched matrix product ``f·Pᵀ``, so no ``[B, l, m, n]`` tensor is materialised.
+    ``hidden_dim`` is the width of the three MLP heads (512 in the published model, whose checkpoint
+    needs the default; a smaller width suits small backbones such as :class:`vpr_nb.models.SmallCNN`).
     Initial weights come from torch's global RNG (seed it, e.g. with :func:`vpr_nb.seed_everything`).
     """
 
     needs_token = True  # forward takes the pair (feature map, global token)
 
     def __init__(self, num_channels: int = 768, num_clusters: int = 64, cluster_dim: int = 128,
-                 token_dim: int = 256, dropout: float = 0.3) -> None:
+                 token_dim: int = 256, dropout: float = 0.3, hidden_dim: int = 512) -> None:
         super().__init__()
         self.num_channels = check_int(num_channels, "num_channels")
         self.num_clusters = check_int(num_clusters, "num_clusters")
         self.cluster_dim = check_int(cluster_dim, "cluster_dim")
         self.token_dim = check_int(token_dim, "token_dim")
+        self.hidden_dim = check_int(hidden_dim, "hidden_dim")
         dropout = check_positive(dropout, "dropout", allow_zero=True)
         if dropout >= 1:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         self.out_dim = self.token_dim + self.num_clusters * self.cluster_dim
-        hidden = 512
+        hidden = self.hidden_dim
         self.token_features = nn.Sequential(
             nn.Linear(self.num_channels, hidden), nn.ReLU(), nn.Linear(hidden, self.token_dim))
         self.cluster_features = nn.Sequential(
