@@ -96,3 +96,17 @@ def check_tensor(x, name: str, *, ndim: int | Sequence[int] | None = None, finit
     if finite and not torch.isfinite(x).all():
         raise ValueError(f"{name} contains NaN or inf")
     return x
+
+
+def check_geo_descriptors(q_desc, db_desc, q_utm, db_utm):
+    """Validate query/database descriptors with their positions: ``(qd, dbd, qu, du)`` as float arrays,
+    same descriptor dimension, one UTM row per descriptor."""
+    qd = as_float_matrix(q_desc, "q_desc")
+    dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
+    qu = as_utm(q_utm, "q_utm")
+    du = as_utm(db_utm, "db_utm")
+    if len(qu) != len(qd):
+        raise ValueError(f"q_utm has {len(qu)} rows but q_desc has {len(qd)}: one position per query")
+    if len(du) != len(dbd):
+        raise ValueError(f"db_utm has {len(du)} rows but db_desc has {len(dbd)}: one position per database image")
+    return qd, dbd, qu, du

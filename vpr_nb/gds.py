@@ -50,7 +50,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
-from vpr_nb._checks import as_float_matrix, as_utm, check_int, check_positive
+from vpr_nb._checks import as_float_matrix, as_utm, check_geo_descriptors, check_int, check_positive
 
 _PAIR_MODES = ("query-db", "all")
 _METHODS = ("gaussian", "empirical")
@@ -424,14 +424,7 @@ def topk_order_agreement(q_desc, db_desc, q_utm, db_utm, k: int = 10) -> OrderAg
     distance (+1: perfectly sorted by distance, -1: reversed). This is the top-k sorting that
     CliqueMining ties to the Geographic Distance Sensitivity.
     """
-    qd = as_float_matrix(q_desc, "q_desc")
-    dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
-    qu = as_utm(q_utm, "q_utm")
-    du = as_utm(db_utm, "db_utm")
-    if len(qu) != len(qd):
-        raise ValueError(f"q_utm has {len(qu)} rows but q_desc has {len(qd)}")
-    if len(du) != len(dbd):
-        raise ValueError(f"db_utm has {len(du)} rows but db_desc has {len(dbd)}")
+    qd, dbd, qu, du = check_geo_descriptors(q_desc, db_desc, q_utm, db_utm)
     k = check_int(k, "k", minimum=2, maximum=len(dbd))
     index = faiss.IndexFlatL2(dbd.shape[1])
     index.add(dbd)
@@ -482,14 +475,7 @@ def query_topk(q_desc, db_desc, q_utm, db_utm, query: int, k: int = 5, pos_radiu
     broken by database index), then the true distance of every retrieval and whether the top-k is
     sorted by it (CliqueMining's "close, but not there": the nearest image should come first).
     """
-    qd = as_float_matrix(q_desc, "q_desc")
-    dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
-    qu = as_utm(q_utm, "q_utm")
-    du = as_utm(db_utm, "db_utm")
-    if len(qu) != len(qd):
-        raise ValueError(f"q_utm has {len(qu)} rows but q_desc has {len(qd)}")
-    if len(du) != len(dbd):
-        raise ValueError(f"db_utm has {len(du)} rows but db_desc has {len(dbd)}")
+    qd, dbd, qu, du = check_geo_descriptors(q_desc, db_desc, q_utm, db_utm)
     query = check_int(query, "query", minimum=0, maximum=len(qd) - 1)
     k = check_int(k, "k", minimum=1, maximum=len(dbd))
     if pos_radius is not None:

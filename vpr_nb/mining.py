@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vpr_nb._checks import as_float_matrix, as_utm, check_int, check_positive
+from vpr_nb._checks import as_float_matrix, as_utm, check_geo_descriptors, check_int, check_positive
 from vpr_nb.evaluation import positives_within
 
 _MIN_ANCHORS = 100  # a batch gives up after max(_MIN_ANCHORS, _ANCHORS_PER_PLACE * places) anchors
@@ -495,14 +495,7 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
         max_heading_diff: keep only potential positives within this many degrees of the query's
             heading (None: any heading, the NetVLAD rule).
     """
-    qd = as_float_matrix(q_desc, "q_desc")
-    dbd = as_float_matrix(db_desc, "db_desc", dim=qd.shape[1])
-    qu = as_utm(q_utm, "q_utm")
-    du = as_utm(db_utm, "db_utm")
-    if len(qu) != len(qd):
-        raise ValueError(f"q_utm has {len(qu)} rows but q_desc has {len(qd)}: one position per query")
-    if len(du) != len(dbd):
-        raise ValueError(f"db_utm has {len(du)} rows but db_desc has {len(dbd)}: one position per database image")
+    qd, dbd, qu, du = check_geo_descriptors(q_desc, db_desc, q_utm, db_utm)
     ids = np.asarray(query_ids)
     if ids.ndim != 1 or len(ids) == 0 or not np.issubdtype(ids.dtype, np.integer):
         raise ValueError(f"query_ids must be a non-empty 1-D integer array, got {ids.dtype} of shape {ids.shape}")

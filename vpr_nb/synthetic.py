@@ -501,7 +501,7 @@ def _render(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.nda
             continue
         sg = seg[..., k]
         plan = tk_k * corr[None, :]                                              # distance along the view axis
-        z = scene_height = cfg.camera_height + plan[:, None, :] * tan_el[:, :, None]  # (N, H, W)
+        z = cfg.camera_height + plan[:, None, :] * tan_el[:, :, None]  # (N, H, W)
         z0, z1 = scene.z0[sg][:, None, :], scene.z1[sg][:, None, :]
         inside = valid[:, None, :] & (z >= z0) & (z <= z1) & ~filled
         # texture coordinate along the wall (m)

@@ -3,9 +3,11 @@
 Run ``python notebooks/build/00_synthetic_world.py`` to (re)write the notebook from the cell sources
 below, then execute it in place with nbconvert (see notebooks/README or the Makefile).
 """
+import sys
 from pathlib import Path
 
-import nbformat
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _nb import write  # noqa: E402
 
 NAME = "00_synthetic_world"
 
@@ -413,23 +415,5 @@ record("00_synthetic_world", {
 ]
 
 
-def build() -> nbformat.NotebookNode:
-    """Assemble the notebook (nbformat v4) from ``CELLS``."""
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    nb.metadata["language_info"] = {"name": "python"}
-    for cell in CELLS:
-        kind, src = cell[0], cell[1].strip("\n")
-        new = nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
-        if len(cell) > 2:
-            new.metadata["tags"] = list(cell[2])
-        nb.cells.append(new)
-    for k, c in enumerate(nb.cells):  # stable ids keep diffs small between rebuilds
-        c["id"] = f"{NAME[:2]}-{k:02d}"
-    return nb
-
-
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / f"{NAME}.ipynb"
-    nbformat.write(build(), out)
-    print("wrote", out.name)
+    write(NAME, CELLS)

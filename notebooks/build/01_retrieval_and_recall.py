@@ -3,9 +3,11 @@
 Run ``python notebooks/build/01_retrieval_and_recall.py`` to (re)write the notebook from the cell
 sources below, then execute it in place with nbconvert (see the Makefile).
 """
+import sys
 from pathlib import Path
 
-import nbformat
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _nb import write  # noqa: E402
 
 NAME = "01_retrieval_and_recall"
 
@@ -54,6 +56,7 @@ SWEEP = {                                                           # knob -> va
 }[PROFILE]
 NS = (1, 5, 10, 20)
 vpr_nb.seed_everything(0)
+torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
 print("world seeds:", SEEDS)
 """),
     ("md", r"""
@@ -346,23 +349,5 @@ record("01_retrieval_and_recall", {
 ]
 
 
-def build() -> nbformat.NotebookNode:
-    """Assemble the notebook (nbformat v4) from ``CELLS``."""
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    nb.metadata["language_info"] = {"name": "python"}
-    for cell in CELLS:
-        kind, src = cell[0], cell[1].strip("\n")
-        new = nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
-        if len(cell) > 2:
-            new.metadata["tags"] = list(cell[2])
-        nb.cells.append(new)
-    for k, c in enumerate(nb.cells):  # stable ids keep diffs small between rebuilds
-        c["id"] = f"{NAME[:2]}-{k:02d}"
-    return nb
-
-
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / f"{NAME}.ipynb"
-    nbformat.write(build(), out)
-    print("wrote", out.name)
+    write(NAME, CELLS)

@@ -3,9 +3,11 @@
 Run ``python notebooks/build/02_triplet_baseline.py`` to (re)write the notebook from the cell
 sources below, then execute it in place with nbconvert (see the Makefile).
 """
+import sys
 from pathlib import Path
 
-import nbformat
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _nb import write  # noqa: E402
 
 NAME = "02_triplet_baseline"
 
@@ -52,6 +54,7 @@ ABLATIONS = PROFILE == "reproduce"           # two more 14-epoch trainings
 MARGIN, M, HEADING_DIFF = 0.1, 5, 45.0       # Eq. (3) margin, negatives per query, positive heading filter
 NS = (1, 5, 10)
 vpr_nb.seed_everything(0)
+torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
 print(f"profile {PROFILE}: {EPOCHS} epochs, ablations {'on' if ABLATIONS else 'off'}")
 """),
     ("md", r"""
@@ -350,6 +353,30 @@ record("02_triplet_baseline", {
 })
 """),
     ("md", r"""
+## Graded exercise: Eq. (3) with M negatives per query
+
+Write `my_triplet_loss(q, p, n, margin)` for `q`, `p` of shape (B, D) and `n` of shape (B, M, D): the
+sum over all B·M triplets of $\max(0,\, d(q,p) - d(q,n_j) + m)$ with Euclidean $d$, in plain torch
+(no `vpr_nb`, no `torch.nn.TripletMarginLoss`).
+"""),
+    ("solution", r"""
+def my_triplet_loss(q, p, n, margin=0.1):
+    ### BEGIN SOLUTION
+    d_qp = (q - p).norm(dim=-1, keepdim=True)          # (B, 1)
+    d_qn = (q[:, None, :] - n).norm(dim=-1)              # (B, M)
+    return torch.relu(d_qp - d_qn + margin).sum()
+    ### END SOLUTION
+""", "ex-02-triplet"),
+    ("tests", r"""
+g = torch.Generator().manual_seed(1)
+q_t, p_t, n_t = (torch.randn(4, 8, generator=g), torch.randn(4, 8, generator=g), torch.randn(4, 3, 8, generator=g))
+assert torch.allclose(my_triplet_loss(q_t, p_t, n_t, 0.1), triplet_loss(q_t, p_t, n_t, 0.1), atol=1e-5)
+### BEGIN HIDDEN TESTS
+assert torch.allclose(my_triplet_loss(q_t, p_t, n_t, 2.0), triplet_loss(q_t, p_t, n_t, 2.0), atol=1e-5)
+assert my_triplet_loss(q_t, q_t, q_t[:, None, :] + 10, 0.1).item() == 0.0
+### END HIDDEN TESTS
+""", "ex-02-triplet", 1),
+    ("md", r"""
 ## Exercises
 
 1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with
@@ -379,23 +406,5 @@ record("02_triplet_baseline", {
 ]
 
 
-def build() -> nbformat.NotebookNode:
-    """Assemble the notebook (nbformat v4) from ``CELLS``."""
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    nb.metadata["language_info"] = {"name": "python"}
-    for cell in CELLS:
-        kind, src = cell[0], cell[1].strip("\n")
-        new = nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
-        if len(cell) > 2:
-            new.metadata["tags"] = list(cell[2])
-        nb.cells.append(new)
-    for k, c in enumerate(nb.cells):  # stable ids keep diffs small between rebuilds
-        c["id"] = f"{NAME[:2]}-{k:02d}"
-    return nb
-
-
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / f"{NAME}.ipynb"
-    nbformat.write(build(), out)
-    print("wrote", out.name)
+    write(NAME, CELLS)

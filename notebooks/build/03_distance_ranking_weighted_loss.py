@@ -3,9 +3,11 @@
 Run ``python notebooks/build/03_distance_ranking_weighted_loss.py`` to (re)write the notebook from the
 cell sources below, then execute it in place with nbconvert (see the Makefile).
 """
+import sys
 from pathlib import Path
 
-import nbformat
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _nb import write  # noqa: E402
 
 NAME = "03_distance_ranking_weighted_loss"
 
@@ -55,6 +57,7 @@ LR_MATCHED = PROFILE == "reproduce"                           # also W-T / DW-T 
 MARGIN, M, SIGMA, EPS, HEADING_DIFF, LR = 0.1, 5, 800.0, 0.1, 45.0, 0.05
 NS = (1, 5, 10)
 vpr_nb.seed_everything(0)
+torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
 print(f"profile {PROFILE}: training seeds {SEEDS}, {EPOCHS} epochs per run")
 """),
     ("md", r"""
@@ -381,6 +384,29 @@ record("03_distance_ranking_weighted_loss", {
 })
 """),
     ("md", r"""
+## Graded exercise: the cross-entropy form, Eq. (8)
+
+Write `my_ce_loss(d_p, d_n)` for tensors of query-positive and query-negative distances (same shape):
+the sum of $-\log \frac{e^{d_n}}{e^{d_p} + e^{d_n}}$ (Eqs. (5)–(8)), numerically stable for large
+distances (hint: it equals $\operatorname{softplus}(d_p - d_n)$).
+"""),
+    ("solution", r"""
+def my_ce_loss(d_p, d_n):
+    ### BEGIN SOLUTION
+    return torch.nn.functional.softplus(d_p - d_n).sum()
+    ### END SOLUTION
+""", "ex-03-ce"),
+    ("tests", r"""
+g = torch.Generator().manual_seed(3)
+q_t, p_t, n_t = torch.randn(5, 6, generator=g), torch.randn(5, 6, generator=g), torch.randn(5, 6, generator=g)
+d_p, d_n = (q_t - p_t).norm(dim=1), (q_t - n_t).norm(dim=1)
+assert torch.allclose(my_ce_loss(d_p, d_n), ce_triplet_loss(q_t, p_t, n_t), atol=1e-5)
+### BEGIN HIDDEN TESTS
+big = my_ce_loss(torch.tensor([1000.0]), torch.tensor([0.0]))
+assert torch.isfinite(big) and abs(big.item() - 1000.0) < 1e-3
+### END HIDDEN TESTS
+""", "ex-03-ce", 1),
+    ("md", r"""
 ## Exercises
 
 1. **σ that ranks.** Set `SIGMA = 25` (the evaluation radius) and rerun the tables. Does the weight now do
@@ -409,23 +435,5 @@ record("03_distance_ranking_weighted_loss", {
 ]
 
 
-def build() -> nbformat.NotebookNode:
-    """Assemble the notebook (nbformat v4) from ``CELLS``."""
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    nb.metadata["language_info"] = {"name": "python"}
-    for cell in CELLS:
-        kind, src = cell[0], cell[1].strip("\n")
-        new = nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
-        if len(cell) > 2:
-            new.metadata["tags"] = list(cell[2])
-        nb.cells.append(new)
-    for k, c in enumerate(nb.cells):  # stable ids keep diffs small between rebuilds
-        c["id"] = f"{NAME[:2]}-{k:02d}"
-    return nb
-
-
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / f"{NAME}.ipynb"
-    nbformat.write(build(), out)
-    print("wrote", out.name)
+    write(NAME, CELLS)

@@ -44,6 +44,8 @@ from vpr_nb.train import PRESETS, resolve_config, run
 if PROFILE not in ("ci", "reproduce"):
     raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
 vpr_nb.seed_everything(0)
+import torch
+torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
 """),
     ("md", r"""
 ## Theory: a reproduction is a configuration
@@ -213,6 +215,36 @@ ax.legend(loc="lower right"); plt.tight_layout(); plt.show()
     ("code", r"""
 record("08_reproduction", {"synthetic-city-triplet (epochs=%d)" % epochs: {f"R@{n}": round(v, 3) for n, v in results["test"].items()}})
 """),
+    ("md", r"""
+## Graded exercise: an override by hand
+
+Write `apply_override(cfg, item)` that returns a *new* config (the input unchanged) with one
+`"section.key=value"` applied, the value parsed as JSON when it parses (`"1e-3"` → `0.001`,
+`"[1, 5]"` → a list) and kept as a string otherwise (`"triplet"`).
+"""),
+    ("solution", r"""
+def apply_override(cfg, item):
+    ### BEGIN SOLUTION
+    key, text = item.split("=", 1)
+    section, name = key.split(".", 1)
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        value = text
+    new = copy.deepcopy(cfg)
+    new[section][name] = value
+    return new
+    ### END SOLUTION
+""", "ex-08-override"),
+    ("tests", r"""
+base = resolve_config("dwt-pitts30k")
+assert apply_override(base, "source.loss=triplet") == resolve_config("dwt-pitts30k", ["source.loss=triplet"])
+assert base == resolve_config("dwt-pitts30k"), "the input config must not change"
+### BEGIN HIDDEN TESTS
+assert apply_override(base, "train.ns=[1, 5]")["train"]["ns"] == [1, 5]
+assert apply_override(base, "train.lr=1e-3") == resolve_config("dwt-pitts30k", ["train.lr=1e-3"])
+### END HIDDEN TESTS
+""", "ex-08-override", 1),
     ("md", r"""
 ## Exercises
 
