@@ -430,3 +430,21 @@ def test_vpr_model_rejects_bad_images(x, match):
     model = VPRModel(SmallCNN(width=8, out_channels=16), _RecordingAggregator(16, needs_token=False))
     with pytest.raises(ValueError, match=match):
         model(x)
+
+
+def test_init_netvlad_from_images_is_deterministic_and_checked():
+    import numpy as np
+
+    from vpr_nb.models import init_netvlad
+    imgs = np.random.default_rng(0).integers(0, 256, (12, 16, 24, 3), dtype=np.uint8)
+    outs = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        model = build_model("small_cnn", "netvlad", num_clusters=4)
+        descs, cents = init_netvlad(model, imgs, per_image=10, niter=10, seed=3, max_images=8)
+        outs.append(model.aggregator.conv.weight.detach().clone())
+        assert descs.shape == (80, model.backbone.out_channels) and cents.shape == (4, model.backbone.out_channels)
+        np.testing.assert_allclose(model.aggregator.centroids.detach().numpy(), cents, rtol=1e-6)
+    assert torch.equal(outs[0], outs[1])
+    with pytest.raises(ValueError, match="NetVLAD"):
+        init_netvlad(build_model("small_cnn", "gem"), imgs)

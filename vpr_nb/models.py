@@ -23,6 +23,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -360,3 +361,32 @@ def build_model(backbone: str | nn.Module = "small_cnn", aggregator: str = "gem"
     elif backbone_kwargs:
         raise ValueError("backbone_kwargs only apply when backbone is given by name")
     return VPRModel(backbone, make_aggregator(aggregator, backbone.out_channels, **aggregator_kwargs))
+
+
+def init_netvlad(model: "VPRModel", images, per_image: int = 20, niter: int = 50, seed: int = 0,
+                 batch_size: int = 256, max_images: int | None = None):
+    """NetVLAD's cluster step for a :class:`VPRModel` with a NetVLAD aggregator.
+
+    Runs the backbone over ``images`` (uint8 ``(N, H, W, 3)``, e.g. the training database), samples
+    ``per_image`` L2-normalised local descriptors per image (from at most ``max_images`` images drawn
+    at random; pytorch-NetVlad uses 50 000 descriptors, 100 per image), runs faiss k-means with K = the layer's
+    ``num_clusters`` and calls ``init_from_clusters`` (centroids and α, Eq. (6) of notebook 04).
+    Returns ``(descriptors, centroids)``. Deterministic for a given ``seed``.
+    """
+    from .aggregation import NetVLAD, kmeans_centroids, sample_local_descriptors
+    from .evaluation import as_image_array, images_to_tensor
+
+    if not isinstance(getattr(model, "aggregator", None), NetVLAD):
+        raise ValueError("init_netvlad needs a VPRModel whose aggregator is NetVLAD "
+                         "(build_model(..., 'netvlad', num_clusters=K))")
+    arr = as_image_array(images)
+    if max_images is not None and len(arr) > check_int(max_images, "max_images"):
+        arr = arr[np.sort(np.random.default_rng(seed).choice(len(arr), max_images, replace=False))]
+    maps = []
+    with torch.no_grad():
+        for start in range(0, len(arr), batch_size):
+            maps.append(model.backbone(images_to_tensor(arr[start:start + batch_size])))
+    descs = sample_local_descriptors(torch.cat(maps), per_image, seed=seed)
+    cents = kmeans_centroids(descs, model.aggregator.num_clusters, niter=niter, seed=seed)
+    model.aggregator.init_from_clusters(cents, descs)
+    return descs, cents

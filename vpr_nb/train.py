@@ -241,6 +241,10 @@ def run(cfg: dict, out: Path | None, progress: bool = True) -> dict:
             raise ValueError("salad-cliquemining-msls needs data.gsv_root (the GSV-Cities folder) besides data.root (MSLS)")
         extra = TrainingSplit(load(gsv, "gsv-cities", check_files=cfg["data"].get("check_files", True)),
                               tuple(cfg["data"]["image_size"]))
+    if m["aggregator"] == "netvlad":            # NetVLAD's cluster step: k-means centroids and alpha
+        from .models import init_netvlad
+        init_netvlad(model, train_split.db_images, per_image=m.get("init_per_image", 20), seed=config.seed,
+                     max_images=m.get("init_max_images", 500))
     source = build_source(cfg["source"], train_split, extra)
     history = train(model, source, val_split, config, checkpoint_dir=None if out is None else out / "checkpoints",
                     progress=progress)

@@ -44,7 +44,7 @@ import vpr_nb
 from vpr_nb import plots
 from vpr_nb.aggregation import NetVLAD, kmeans_centroids, sample_local_descriptors
 from vpr_nb.evaluation import evaluate_model, images_to_tensor
-from vpr_nb.models import build_model
+from vpr_nb.models import build_model, init_netvlad
 from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import TrainConfig, TripletSource, train
@@ -228,6 +228,14 @@ ratio = np.exp(alpha * delta)                                                  #
 print(f"{len(descs)} descriptors of dimension {descs.shape[1]}, K = {K} centroids")
 print(f"mean best - second-best cosine = {delta.mean():.4f} -> alpha = {alpha:.1f} (vpr_nb: {netvlad_model.aggregator.alpha:.1f})")
 print(f"best/second-best weight ratio: median {np.median(ratio):.1f}, mean of log = {np.log(ratio).mean():.3f} (= ln 100 = {np.log(100):.3f})")
+
+# the package keeps this cluster step as vpr_nb.models.init_netvlad (notebook 05 and `python -m vpr_nb.train` use it)
+vpr_nb.seed_everything(0)
+pkg_model = build_model("small_cnn", "netvlad", num_clusters=K)
+init_netvlad(pkg_model, train_split.db_images, per_image=20, niter=50, seed=0)
+assert torch.allclose(pkg_model.aggregator.conv.weight, netvlad_model.aggregator.conv.weight, atol=1e-5)
+assert torch.allclose(pkg_model.aggregator.centroids, netvlad_model.aggregator.centroids, atol=1e-5)
+print("kmeans_init by hand == vpr_nb.models.init_netvlad: True")
 """),
     ("md", r"""
 ## Experiment: GeM pooling vs NetVLAD

@@ -40,9 +40,9 @@ import torch.nn.functional as F
 
 import vpr_nb
 from vpr_nb import plots
-from vpr_nb.aggregation import SALAD, kmeans_centroids, salad_aggregate, sample_local_descriptors, sinkhorn
+from vpr_nb.aggregation import SALAD, salad_aggregate, sinkhorn
 from vpr_nb.evaluation import evaluate_model, images_to_tensor
-from vpr_nb.models import build_model
+from vpr_nb.models import build_model, init_netvlad
 from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import TrainConfig, TripletSource, train
@@ -227,10 +227,8 @@ def make_model(name, seed):
         return build_model("small_cnn", "gem")
     if name == "SALAD":
         return build_model("small_cnn", "salad", **SALAD_SIZE)
-    model = build_model("small_cnn", "netvlad", num_clusters=NETVLAD_K)     # k-means init, notebook 04
-    with torch.no_grad():
-        descs = sample_local_descriptors(model.backbone(images_to_tensor(train_split.db_images)), 20, seed=seed)
-    model.aggregator.init_from_clusters(kmeans_centroids(descs, NETVLAD_K, niter=50, seed=seed), descs)
+    model = build_model("small_cnn", "netvlad", num_clusters=NETVLAD_K)
+    init_netvlad(model, train_split.db_images, per_image=20, niter=50, seed=seed)   # k-means init, notebook 04
     return model
 
 
