@@ -81,3 +81,21 @@ def test_every_notebook_from_02_has_a_gradable_exercise(path):
         assert BEGIN_SOLUTION not in cell.source and BEGIN_HIDDEN not in cell.source
         if cell.cell_type == "code":
             compile(cell.source.replace("%matplotlib inline", ""), path.name, "exec")
+
+
+@pytest.mark.slow
+def test_real_notebook_instructor_full_student_zero_pasted_back_full(tmp_path):
+    """The whole loop on a real course notebook (06, the quickest with an exercise)."""
+    src = ROOT / "notebooks" / "06_gds.ipynb"
+    full = grade(src, src)
+    assert full and all(g.points == g.max_points for g in full), [g.error for g in full]
+    stu_path = generate(ROOT / "notebooks", tmp_path / "students", pattern="06_gds.ipynb")[0]
+    assert all(g.points == 0 for g in grade(stu_path, src, cwd=src.parent))
+    instructor = nbformat.read(src, as_version=4)
+    stu = nbformat.read(stu_path, as_version=4)
+    for k, cell in enumerate(instructor.cells):          # paste each solution back where the stub is
+        if cell.metadata.get("nbgrader", {}).get("solution"):
+            stu.cells[k].source = cell.source
+    nbformat.write(stu, tmp_path / "pasted.ipynb")
+    back = grade(tmp_path / "pasted.ipynb", src, cwd=src.parent)
+    assert all(g.points == g.max_points for g in back), [g.error for g in back]
