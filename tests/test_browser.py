@@ -11,10 +11,6 @@ them), moves the sigma slider with the keyboard and asserts that the printed wei
 A screenshot is saved as ``tmp_path / "jupyterlab_widget.png"``. The server (and its kernels) is
 always shut down in the fixture's teardown.
 
-Until notebook 03 is in ``notebooks/``, the test drives a stand-in notebook it writes into the
-temporary copy (the same Eq. (4) print-out behind an ``ipywidgets.FloatSlider``); the test's
-``record_property("notebook", ...)`` and the screenshot say which one was driven.
-
 Needs ``playwright`` (pinned in environment.txt) and Debian's ``chromium`` (``apt-get install -y
 chromium``; ``.ci/run`` installs it). Without them the test fails, unless
 ``VPR_NB_ALLOW_SKIP_BROWSER=1`` is set, in which case it is skipped.
@@ -55,8 +51,6 @@ SHUTDOWN_TIMEOUT_S = 10.0
 INTERRUPT_TRIES = 5
 SKIP_ENV = "VPR_NB_ALLOW_SKIP_BROWSER"
 WIDGET_CALL = "distance_weight_explorer("      # text of notebook 03's widget cell
-STAND_IN = "browser_stand_in.ipynb"
-STAND_IN_CALL = "widgets.interactive(show_weights"
 
 _INSTALL_HINT = (
     "Install them with `.venv/bin/python -m pip install -r environment.txt` (playwright) and "
@@ -100,34 +94,6 @@ class _Budget:
 
     def left_ms(self, cap_ms: float) -> float:
         return 1000.0 * self.left_s(cap_ms / 1000.0)
-
-
-def _write_stand_in(root: Path) -> str:
-    """Write a small widget notebook into ``root`` (only used while notebook 03 is absent); return its name.
-
-    It prints Eq. (4), ``w = (1 + eps) / (d / sigma + eps) - 1`` with ``eps = 0.1``, in the same format as
-    :func:`vpr_nb.widgets.distance_weight_explorer`, from a ``FloatSlider`` for sigma.
-    """
-    import nbformat
-
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3 (ipykernel)", "language": "python"}
-    nb.cells = [
-        nbformat.v4.new_markdown_cell("Stand-in for the Eq. (4) weight explorer of notebook 03 (browser test)."),
-        nbformat.v4.new_code_cell(
-            "import ipywidgets as widgets\n\n"
-            "EPS, MARKS = 0.1, (0.0, 5.0, 10.0, 25.0)\n\n"
-            "def show_weights(sigma):\n"
-            "    w = {d: (1 + EPS) / (d / sigma + EPS) - 1 for d in MARKS}  # Eq. (4)\n"
-            "    spread = (w[0.0] - w[max(MARKS)]) / w[0.0]\n"
-            "    print('w at ' + ', '.join(f'{d:g} m: {v:.3f}' for d, v in w.items())\n"
-            "          + f' | relative spread over the positive range: {spread:.3f}')"),
-        nbformat.v4.new_code_cell(
-            f"{STAND_IN_CALL}, sigma=widgets.FloatSlider(value=800.0, min=50.0, max=5000.0, step=50.0,\n"
-            "                                              description='sigma (m)', continuous_update=False))"),
-    ]
-    nbformat.write(nb, root / STAND_IN)
-    return STAND_IN
 
 
 def _free_port() -> int:
@@ -287,10 +253,8 @@ def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_prope
     def ui() -> float:   # the UI timeout, cut to what is left of the test's budget
         return budget.left_ms(UI_TIMEOUT_MS)
 
-    if (root / NOTEBOOK).is_file():
-        name, call = NOTEBOOK, WIDGET_CALL
-    else:
-        name, call = _write_stand_in(root), STAND_IN_CALL
+    assert (root / NOTEBOOK).is_file(), f"{NOTEBOOK} is missing from notebooks/"
+    name, call = NOTEBOOK, WIDGET_CALL
     record_property("notebook", name)
     screenshot = tmp_path / "jupyterlab_widget.png"
     with sync_playwright() as pw:
@@ -333,7 +297,7 @@ def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_prope
                 before = _widget_text(cell, ui())
                 handle.scroll_into_view_if_needed(timeout=ui())
                 handle.focus(timeout=ui())
-                page.keyboard.press("ArrowRight")   # sigma one step up (03: 0.05 in log10; stand-in: 50 m)
+                page.keyboard.press("ArrowRight")   # sigma one step up (0.05 in log10)
                 deadline = time.monotonic() + budget.left_s(UPDATE_TIMEOUT_MS / 1000)
                 after = before
                 while after == before and time.monotonic() < deadline:
