@@ -323,21 +323,27 @@ def sample_group_descriptors(descriptors, groups, seed: int | np.random.Generato
         float32 ``(max(groups) + 1, D)``; rows of ids without images are zero.
     """
     desc = as_float_matrix(descriptors, "descriptors")
-    groups = _as_groups(groups, len(desc))
+    present, pick, num = _one_image_per_group(_as_groups(groups, len(desc)), seed)
+    out = np.zeros((num, desc.shape[1]), dtype=np.float32)
+    out[present] = desc[pick]
+    return out
+
+
+def _one_image_per_group(groups: np.ndarray, seed) -> tuple[np.ndarray, np.ndarray, int]:
+    """(ids of the non-empty groups, one random image index of each, number of group ids)."""
     rng = _as_rng(seed)
     order, starts = _group_index(groups)
     sizes = np.diff(starts)
     present = np.flatnonzero(sizes > 0)
     pick = order[starts[present] + (rng.random(len(present)) * sizes[present]).astype(np.int64)]
-    out = np.zeros((len(sizes), desc.shape[1]), dtype=np.float32)
-    out[present] = desc[pick]
-    return out
+    return present, pick, len(sizes)
 
 
 class CliqueBatchMaker:
     """``make_batches(model, epoch, rng)`` for :class:`vpr_nb.training.PlaceBatchSource` with CliqueMining.
 
-    The group descriptors come from ``model`` (one random image per group, as in the original code).
+    The group descriptors come from ``model`` (one random image per group, as in the original code;
+    only those images are encoded, so ``images`` may be a lazy on-disk array).
     ``refresh_every=None`` computes them once, at the first call, and keeps them for the whole run
     (the original: descriptors of the pre-trained model, computed once, offline);
     ``refresh_every=E`` recomputes them with the current model at every epoch that is a multiple of E.
@@ -350,7 +356,8 @@ class CliqueBatchMaker:
     def __init__(self, images, utm, groups, places_per_batch: int, num_batches: int, *,
                  images_per_place: int = 4, same_place_threshold: float = 25.0, similar_groups: int = 15,
                  refresh_every: int | None = None, num_workers: int = 1):
-        self.images = np.asarray(images)
+        from vpr_nb.evaluation import as_image_array
+        self.images = as_image_array(images)   # numpy, or a lazy on-disk ImageArray (only indexed images are read)
         self.utm = as_utm(utm, "utm")
         self.groups = _as_groups(groups, len(self.utm))
         if len(self.images) != len(self.utm):
@@ -371,8 +378,11 @@ class CliqueBatchMaker:
         rng = _as_rng(rng)
         due = self.refresh_every is not None and epoch % self.refresh_every == 0
         if self.group_descriptors is None or (due and epoch not in self.refreshed_at):
-            desc = compute_descriptors(model, self.images)  # restores the model's train/eval mode
-            self.group_descriptors = sample_group_descriptors(desc, self.groups, rng)
+            # one random image per group (sample_group_descriptors); only those images are encoded
+            present, pick, num = _one_image_per_group(self.groups, rng)
+            desc = compute_descriptors(getattr(model, "module", model), self.images[pick])  # restores train/eval mode
+            self.group_descriptors = np.zeros((num, desc.shape[1]), dtype=np.float32)
+            self.group_descriptors[present] = desc
             self.refreshed_at.append(int(epoch))
         return clique_batches(self.utm, self.groups, self.group_descriptors,
                               seed=int(rng.integers(2**63)), **self.kwargs)

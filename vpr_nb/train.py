@@ -148,30 +148,31 @@ def _place_pool(split):
     return images, np.asarray(groups, dtype=np.int64), utm
 
 
+def _subset(images, idx):
+    """The images at ``idx`` without reading an on-disk array (a new ImageArray over those paths)."""
+    from .datasets import ImageArray
+    if isinstance(images, ImageArray):
+        return ImageArray([images.paths[i] for i in idx], images.size)
+    return images[idx]
+
+
 def _clique_sampler(images, groups, utm, opts, per_epoch):
-    """CliqueMining batches on one pool; group descriptors from one random image per place, recomputed
-    every ``refresh_every`` epochs (0 = once, as the published code)."""
+    """CliqueMining batches (:class:`vpr_nb.mining.CliqueBatchMaker`) over the images with a place id;
+    ``refresh_every`` epochs between descriptor refreshes (absent: once, as the published code)."""
     import numpy as np
-    from .evaluation import compute_descriptors
-    from .mining import clique_batches
+    from .mining import CliqueBatchMaker
     sub = np.flatnonzero(groups >= 0)
     _, gid = np.unique(groups[sub], return_inverse=True)
-    refresh = int(opts.get("refresh_every", 0))
-    cache = {}
+    makers = {}
 
     def make(model, epoch, rng, places):
-        key = 0 if refresh == 0 else epoch // refresh
-        if key not in cache:
-            cache.clear()
-            order = rng.permutation(len(sub))
-            first = np.full(gid.max() + 1, -1)
-            first[gid[order[::-1]]] = order[::-1]          # one random image per place
-            cache[key] = compute_descriptors(getattr(model, "module", model), images[sub[first]])
-        b = clique_batches(utm[sub], gid, cache[key], places, opts["images_per_place"],
-                           same_place_threshold=opts.get("same_place_threshold", 25.0),
-                           similar_groups=opts.get("similar_groups", 15), num_batches=per_epoch,
-                           seed=int(rng.integers(2**31)))
-        return sub[b]
+        if places not in makers:
+            makers[places] = CliqueBatchMaker(_subset(images, sub), utm[sub], gid, places, per_epoch,
+                                              images_per_place=opts["images_per_place"],
+                                              same_place_threshold=opts.get("same_place_threshold", 25.0),
+                                              similar_groups=opts.get("similar_groups", 15),
+                                              refresh_every=opts.get("refresh_every"))
+        return sub[makers[places](model, epoch, rng)]
     return make
 
 
