@@ -11,10 +11,15 @@ both formulations compute the same function), after one warm-up pass. The baseli
 formulation), SALAD with the ``repeat``-based aggregation of the published code.
 
 Targets (issue 4): NetVLAD vectorised >= 1.5x faster than the loop; SALAD einsum/bmm >= 2x faster and
->= 2x less peak memory than the repeat-based aggregation, outputs equal to 1e-5. The script prints
-whether each is met. The SALAD time target is checked on the aggregation step (what the two
-formulations differ in); the whole-layer ratio is printed too: on a CPU the 1x1-conv MLP heads,
-identical in both, take most of the time and cap it (1.35x measured at the full size, 1 thread).
+>= 2x less peak memory than the repeat-based formulation, outputs equal to 1e-5. The script prints
+whether each is met, for the whole layer (1x1-conv heads + Sinkhorn + aggregation, what a training
+step runs) and for the aggregation step alone (what the two formulations differ in).
+
+Isolation: the whole SALAD layer moves hundreds of MB per pass, so on a CPU its time depends on the
+allocator's state (pages returned to the OS and faulted in again) and on what ran just before. Each
+SALAD whole-layer timing therefore runs in a fresh subprocess that times only one variant; the
+subprocesses alternate ours / reference for ``--rounds`` rounds, and the reported ratio is the median
+of the per-round ratios (the spread across rounds is printed, so a noisy machine shows as such).
 
 Peak memory: each variant runs one forward+backward pass in a fresh subprocess. On CPU the extra
 memory is the peak resident set (``VmHWM`` from ``/proc/self/status``, reset through
@@ -111,11 +116,19 @@ def _memory_probe(variant: str, size: dict, device: str) -> None:
     print((status_kib("VmHWM:") - before) * 1024)
 
 
-def _peak_extra_bytes(variant: str, size: dict, device: str) -> int:
-    cmd = [sys.executable, __file__, "--memory-probe", variant, "--size", json.dumps(size), "--device", device,
-           "--threads", str(torch.get_num_threads())]
+def _time_probe(variant: str, size: dict, device: str, repeats: int) -> None:
+    """Child process: print the median seconds of one SALAD forward+backward of ``variant``."""
+    model, features, token = _salad_setup(size, device)
+    step = _fwd_bwd(_salad_forwards(model, features, token)[variant], [features, *model.parameters()])
+    print(_median_time(step, repeats, device))
+
+
+def _probe(kind: str, variant: str, size: dict, device: str, repeats: int = 1) -> float:
+    """Run ``--{kind}-probe variant`` in a fresh interpreter and return the number it prints."""
+    cmd = [sys.executable, __file__, f"--{kind}-probe", variant, "--size", json.dumps(size), "--device", device,
+           "--threads", str(torch.get_num_threads()), "--repeats", str(repeats)]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
-    return int(out.strip().splitlines()[-1])
+    return float(out.strip().splitlines()[-1])
 
 
 def bench_netvlad(size: dict, repeats: int, device: str) -> dict:
@@ -140,16 +153,20 @@ def bench_netvlad(size: dict, repeats: int, device: str) -> dict:
     return {"netvlad_speedup": speedup, "netvlad_max_diff": diff}
 
 
-def bench_salad(size: dict, repeats: int, device: str) -> dict:
+def bench_salad(size: dict, repeats: int, rounds: int, device: str) -> dict:
     model, features, token = _salad_setup(size, device)
     forwards = _salad_forwards(model, features, token)
-    params = [features, *model.parameters()]
     with torch.no_grad():
         diff = (forwards["ours"]() - forwards["reference"]()).abs().max().item()
-    t_ours = _median_time(_fwd_bwd(forwards["ours"], params), repeats, device)
-    t_ref = _median_time(_fwd_bwd(forwards["reference"], params), repeats, device)
-    mem_ours = _peak_extra_bytes("ours", size, device)
-    mem_ref = _peak_extra_bytes("reference", size, device)
+    # whole layer: alternating fresh subprocesses, one variant each (see the module docstring)
+    times: dict[str, list[float]] = {"ours": [], "reference": []}
+    for _ in range(rounds):
+        for variant in times:
+            times[variant].append(_probe("time", variant, size, device, repeats))
+    round_ratios = sorted(r / o for o, r in zip(times["ours"], times["reference"]))
+    t_ours, t_ref = statistics.median(times["ours"]), statistics.median(times["reference"])
+    mem_ours = _probe("memory", "ours", size, device)
+    mem_ref = _probe("memory", "reference", size, device)
     n = size["side"] ** 2
     # the aggregation step alone, on already projected inputs (no shared 1x1-conv MLPs)
     gen = torch.Generator(device).manual_seed(1)
@@ -161,18 +178,20 @@ def bench_salad(size: dict, repeats: int, device: str) -> dict:
                               repeats, device)
     print(f"SALAD    B={size['batch']} C={size['channels']} n={n} ({size['side']}x{size['side']}), "
           f"{model.num_clusters} clusters x {model.cluster_dim} + {model.token_dim} token = {model.out_dim}-D")
+    layer_speedup = statistics.median(round_ratios)
     print(f"  forward+backward, whole layer: einsum/bmm {t_ours * 1e3:8.1f} ms | repeat-based {t_ref * 1e3:8.1f} ms"
-          f" | speed-up {t_ref / t_ours:5.2f}x")
+          f" | speed-up {layer_speedup:5.2f}x (median of {rounds} rounds; "
+          f"range {round_ratios[0]:.2f}-{round_ratios[-1]:.2f}x)")
     print(f"  forward+backward, aggregation step only (Sinkhorn + V + norms): einsum/bmm {t_step_ours * 1e3:8.1f} ms"
           f" | repeat-based {t_step_ref * 1e3:8.1f} ms | speed-up {t_step_ref / t_step_ours:5.2f}x")
     print(f"  peak extra memory: einsum/bmm {mem_ours / 2**20:8.1f} MiB | repeat-based {mem_ref / 2**20:8.1f} MiB"
           f" | ratio {mem_ref / max(mem_ours, 1):5.2f}x less")
     print(f"  max |ours - repeat-based| = {diff:.2e}")
-    step_speedup, layer_speedup, mem_ratio = t_step_ref / t_step_ours, t_ref / t_ours, mem_ref / max(mem_ours, 1)
-    # The two formulations differ only in the aggregation step; the 1x1-conv MLP heads (identical in
-    # both) dominate the whole-layer time on a CPU, which caps the whole-layer ratio.
-    print(f"  target >= 2x faster (aggregation step): {'met' if step_speedup >= 2 else 'NOT met'}; "
-          f"whole layer {layer_speedup:.2f}x (shared MLP heads included)")
+    step_speedup, mem_ratio = t_step_ref / t_step_ours, mem_ref / max(mem_ours, 1)
+    # The two formulations differ only in the aggregation step; the 1x1-conv MLP heads are identical
+    # in both and, on a CPU, take most of our time, so the whole-layer ratio is the smaller one.
+    print(f"  target >= 2x faster: whole layer {'met' if layer_speedup >= 2 else 'NOT met'} ({layer_speedup:.2f}x), "
+          f"aggregation step {'met' if step_speedup >= 2 else 'NOT met'} ({step_speedup:.2f}x)")
     print(f"  target >= 2x less peak memory (whole layer): {'met' if mem_ratio >= 2 else 'NOT met'}; "
           f"outputs equal to 1e-5: {'met' if diff <= 1e-5 else 'NOT met'}")
     return {"salad_step_speedup": step_speedup, "salad_layer_speedup": layer_speedup,
@@ -186,7 +205,10 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice); "
                                                      "1 gives stable timings on a busy machine")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="alternating ours/reference subprocess rounds for the SALAD whole layer")
     parser.add_argument("--memory-probe", choices=["ours", "reference"], help=argparse.SUPPRESS)
+    parser.add_argument("--time-probe", choices=["ours", "reference"], help=argparse.SUPPRESS)
     parser.add_argument("--size", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.threads is not None:
@@ -194,11 +216,16 @@ def main() -> None:
     if args.memory_probe:
         _memory_probe(args.memory_probe, json.loads(args.size), args.device)
         return
+    if args.time_probe:
+        _time_probe(args.time_probe, json.loads(args.size), args.device, args.repeats)
+        return
     sizes = SIZES["quick" if args.quick else "full"]
+    if args.repeats < 1 or args.rounds < 1:
+        parser.error("--repeats and --rounds must be at least 1")
     print(f"torch {torch.__version__}, device {args.device}, {torch.get_num_threads()} CPU threads, "
           f"median of {args.repeats} runs")
     bench_netvlad(sizes["netvlad"], args.repeats, args.device)
-    bench_salad(sizes["salad"], args.repeats, args.device)
+    bench_salad(sizes["salad"], args.repeats, args.rounds, args.device)
 
 
 if __name__ == "__main__":
