@@ -341,7 +341,8 @@ def ablation_model(name, seed):
     vpr_nb.seed_everything(seed)
     if name == "mean pooling":
         return build_model("small_cnn", "mean")
-    return VPRModel(SmallCNN(), ProjectedMean(128, relu=name == "mean(ReLU(f))"))
+    backbone = SmallCNN()
+    return VPRModel(backbone, ProjectedMean(backbone.out_channels, relu=name == "mean(ReLU(f))"))
 
 
 ABLATION = ("mean(f)", "mean(ReLU(f))", "mean pooling")
