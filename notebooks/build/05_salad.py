@@ -232,8 +232,8 @@ def make_model(name, seed):
     return model
 
 
-def run(name, seed):
-    model = make_model(name, seed)
+def run(name, seed, make=make_model):
+    model = make(name, seed)
     source = TripletSource(train_split, "triplet", max_heading_diff=45)
     t0 = time.perf_counter()
     hist = train(model, source, val_split, TrainConfig(epochs=EPOCHS, seed=seed, **OPTIM), progress=False)
@@ -347,15 +347,7 @@ def ablation_model(name, seed):
 
 ABLATION = ("mean(f)", "mean(ReLU(f))", "mean pooling")
 if PROFILE == "reproduce":
-    ablation = {}
-    for name in ABLATION:
-        r1 = []
-        for seed in SEEDS:
-            model = ablation_model(name, seed)
-            train(model, TripletSource(train_split, "triplet", max_heading_diff=45), val_split,
-                  TrainConfig(epochs=EPOCHS, seed=seed, **OPTIM), progress=False)
-            r1.append(evaluate_model(model, test_split, ns=(1,))[1])
-        ablation[name] = np.array(r1)
+    ablation = {name: np.array([run(name, seed, ablation_model)["test"][1] for seed in SEEDS]) for name in ABLATION}
     print(f"no-cluster ablation, test R@1, {EPOCHS} epochs, mean +- std over seeds {SEEDS}")
     for name in ("SALAD", "GeM"):
         print(f"{name:15s}{test[name][1].mean():.3f} +- {test[name][1].std():.3f}  (table above)")
