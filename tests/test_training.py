@@ -114,3 +114,41 @@ def test_bad_sources(world):
     bad = PlaceBatchSource(world.train.db_images, lambda m, e, r: np.full((1, 2, 2), 10**6))
     with pytest.raises(ValueError, match="outside"):
         train(_model(), bad, world.val, TrainConfig(epochs=1), progress=False)
+
+
+# ------------------------------------------------------------------------------ training health
+def test_mean_pairwise_cosine_matches_the_pairwise_definition():
+    from vpr_nb.training import mean_pairwise_cosine
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(7, 5))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    sims = d @ d.T
+    assert mean_pairwise_cosine(d) == pytest.approx(sims[~np.eye(7, dtype=bool)].mean())
+    assert mean_pairwise_cosine(np.tile(d[:1], (4, 1))) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="N >= 2"):
+        mean_pairwise_cosine(d[:1])
+
+
+@pytest.mark.parametrize("loss, collapsed", [("triplet", 3 * 0.1), ("ce", 3 * np.log(2))])
+def test_history_records_collapsed_loss_and_mean_cosine(world, loss, collapsed):
+    """Eq. (3) with equal descriptors gives the margin per negative, Eq. (8) log 2 per negative (M = 3)."""
+    _, hist = _run(world, loss=loss, epochs=1)
+    e = hist.epochs[0]
+    assert e["collapsed_loss"] == pytest.approx(collapsed, rel=1e-5)
+    assert -1.0 <= e["mean_cosine"] <= 1.0 and hist.mean_cosines == [e["mean_cosine"]]
+    assert hist.collapsed_losses == [e["collapsed_loss"]]
+    assert History.from_dict(hist.to_dict()).epochs[0]["collapsed_loss"] == e["collapsed_loss"]
+
+
+def test_place_batches_record_the_ms_collapsed_loss(world):
+    """Multi-Similarity loss with every similarity 1: (1/α)·log(1 + (K-1)e^{-α(1-λ)}) + (1/β)·log(1 + (N-K)e^{β(1-λ)})."""
+    from vpr_nb import losses as L
+    seed_everything(0)
+    model = build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
+    tr = world.train
+    src = PlaceBatchSource(tr.db_images, lambda m, e, rng: random_place_batches(tr.db_place, 4, 2, num_batches=2, seed=rng))
+    hist = train(model, src, world.val, TrainConfig(epochs=1, optimizer="adam", lr=1e-3), progress=False)
+    labels = torch.arange(4).repeat_interleave(2)
+    same = torch.nn.functional.normalize(torch.ones(8, 16), dim=1)
+    want = float(L.multi_similarity_loss(same, labels, 1.0, 50.0, 0.0))
+    assert hist.epochs[0]["collapsed_loss"] == pytest.approx(want, rel=1e-5)

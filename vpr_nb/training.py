@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 
 from . import losses as L
 from ._checks import check_int, check_positive
-from .evaluation import as_image_array, compute_descriptors, evaluate_model, images_to_tensor
+from .evaluation import as_image_array, compute_descriptors, evaluate_descriptors, images_to_tensor
 from .mining import mine_triplets
 
 TRIPLET_LOSSES = ("triplet", "weighted", "ce", "dw")
@@ -81,9 +81,31 @@ class TrainConfig:
             raise ValueError("ns must list at least one N for Recall@N, e.g. (1, 5, 10)")
 
 
+def mean_pairwise_cosine(descriptors) -> float:
+    """Mean cosine similarity over all pairs of distinct rows of L2-normalised ``descriptors`` (N ≥ 2).
+
+    Uses ``‖Σ dᵢ‖² = N + Σ_{i≠j} dᵢ·dⱼ``, so it costs O(N·D). Close to 1: every image gets nearly the
+    same descriptor (a collapsed embedding); a healthy VPR embedding sits far below.
+    """
+    d = np.asarray(descriptors, dtype=np.float64)
+    if d.ndim != 2 or len(d) < 2:
+        raise ValueError(f"descriptors must be an (N >= 2, D) array, got shape {d.shape}")
+    n = len(d)
+    s = d.sum(axis=0)
+    return float((s @ s - (d * d).sum()) / (n * (n - 1)))
+
+
 @dataclass
 class History:
-    """Per-epoch records of a run: ``epochs[i]`` = {epoch, loss, lr, seconds, val: {N: recall}}."""
+    """Per-epoch records of a run: ``epochs[i]`` = {epoch, loss, collapsed_loss, mean_cosine, lr,
+    seconds, val: {N: recall}}.
+
+    Training health: ``collapsed_loss`` is the epoch's mean loss *if every descriptor were the same
+    vector* (same batches, same miner): a run whose loss sits at it has learned nothing, e.g.
+    M × margin for the triplet loss of Eq. (3) or M·log 2 for the CE loss of Eq. (8).
+    ``mean_cosine`` is the mean pairwise cosine of the validation database descriptors
+    (:func:`mean_pairwise_cosine`): near 1 means a collapsed embedding.
+    """
 
     epochs: list[dict] = field(default_factory=list)
     best_epoch: int = -1
@@ -95,6 +117,14 @@ class History:
 
     def recalls(self, n: int = 1) -> list[float]:
         return [e["val"][n] for e in self.epochs]
+
+    @property
+    def collapsed_losses(self) -> list[float]:
+        return [e["collapsed_loss"] for e in self.epochs]
+
+    @property
+    def mean_cosines(self) -> list[float]:
+        return [e["mean_cosine"] for e in self.epochs]
 
     def to_dict(self) -> dict:
         return {"epochs": [dict(e, val={int(k): float(v) for k, v in e["val"].items()}) for e in self.epochs],
@@ -176,6 +206,12 @@ class TripletSource:
         model = getattr(model, "module", model)        # unwrap DistributedDataParallel
         return compute_descriptors(model, self.split.q_images), compute_descriptors(model, self.split.db_images)
 
+    def _collapsed_loss(self, b: int, m: int, dim: int, geo) -> float:
+        """The loss of this step's triplets if every descriptor were the same unit vector."""
+        e = torch.zeros(b, dim, dtype=geo.dtype)
+        e[:, 0] = 1.0
+        return float(self._loss(e, e, e.unsqueeze(1).expand(b, m, dim), geo.cpu()))
+
     def _loss(self, q, p, n, geo):
         if self.loss == "triplet":
             return L.triplet_loss(q, p, n, self.margin)
@@ -218,6 +254,7 @@ class TripletSource:
             out = model(x).float()
             q, p, n = out[:b], out[b:2 * b], out[2 * b:].view(b, m, -1)
             geo = torch.as_tensor(tb.geo_qp[v], dtype=out.dtype, device=out.device)
+            self.last_collapsed_loss = self._collapsed_loss(b, m, out.shape[1], geo) * (world / total)
             yield self._loss(q, p, n, geo) * (world / total)
 
 
@@ -259,8 +296,13 @@ class PlaceBatchSource:
         labels = torch.arange(p, device=device).repeat_interleave(k)
         for batch in batches:
             emb = model(images_to_tensor(self.x[batch.reshape(-1)]).to(device)).float()
-            pairs = None if self.miner_epsilon is None else L.multi_similarity_miner(emb, labels, self.miner_epsilon)
-            yield L.multi_similarity_loss(emb, labels, self.alpha, self.beta, self.base, miner_pairs=pairs)
+            same = torch.nn.functional.normalize(torch.ones_like(emb.detach()), dim=1)   # every descriptor equal
+            self.last_collapsed_loss = float(self._ms_loss(same, labels))
+            yield self._ms_loss(emb, labels)
+
+    def _ms_loss(self, emb, labels):
+        pairs = None if self.miner_epsilon is None else L.multi_similarity_miner(emb, labels, self.miner_epsilon)
+        return L.multi_similarity_loss(emb, labels, self.alpha, self.beta, self.base, miner_pairs=pairs)
 
 
 # ------------------------------------------------------------------------------ checkpoints
@@ -376,7 +418,7 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
         if hasattr(source, "epoch"):
             source.epoch = epoch
         model.train()
-        total, steps = 0.0, 0
+        total, collapsed, steps = 0.0, 0.0, 0
         lr = opt.param_groups[0]["lr"]
         with torch.autocast(device.type, enabled=amp):
             for loss in source.steps(net, rng, shard=(rank, world), device=device):
@@ -393,11 +435,16 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
                     torch.distributed.all_reduce(logged)
                     logged = logged / world
                 total, steps = total + logged.item(), steps + 1
+                collapsed += float(getattr(source, "last_collapsed_loss", float("nan")))
         if cfg.scheduler == "step":
             sched.step()
-        val = evaluate_model(model, val_split, ns=cfg.ns)
-        history.epochs.append({"epoch": epoch, "loss": total / max(steps, 1), "lr": lr,
-                               "seconds": time.perf_counter() - t0, "val": val})
+        val_db = compute_descriptors(model, val_split.db_images)
+        val = evaluate_descriptors(val_db, compute_descriptors(model, val_split.q_images), val_split.db_utm,
+                                   val_split.q_utm, val_split.pos_radius, cfg.ns)
+        history.epochs.append({"epoch": epoch, "loss": total / max(steps, 1),
+                               "collapsed_loss": collapsed / max(steps, 1),
+                               "mean_cosine": mean_pairwise_cosine(val_db) if len(val_db) > 1 else float("nan"),
+                               "lr": lr, "seconds": time.perf_counter() - t0, "val": val})
         if val[cfg.ns[0]] > history.best_recall:
             history.best_epoch, history.best_recall = epoch, float(val[cfg.ns[0]])
             best_state = copy.deepcopy(model.state_dict())

@@ -1,0 +1,103 @@
+"""Tests for vpr_nb.pretrain (the course backbone) and SmallCNN's partial freezing."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from vpr_nb import pretrain
+from vpr_nb.models import SmallCNN
+from vpr_nb.synthetic import make_dataset
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    """The pretrain command end to end in its reduced profile (about 20 s)."""
+    out = tmp_path_factory.mktemp("cb") / "cb.pt"
+    assert pretrain.main(["--profile", "quick", "--out", str(out)]) == 0
+    return out
+
+
+def test_pretrain_command_writes_checkpoint_and_card(quick_run):
+    card = json.loads(quick_run.with_suffix(".json").read_text())
+    assert card["sha256"] == pretrain._sha256(quick_run)
+    assert card["config"]["epochs"] == pretrain.PROFILES["quick"]["epochs"]
+    assert card["torch"] == torch.__version__ and card["train_seconds"] > 0
+    assert set(card["held_out"]) == {f"{p} seed {s} {sp}" for p, s, sp in pretrain.HELD_OUT}
+    state = torch.load(quick_run, weights_only=True)
+    assert all(v.dtype == torch.float16 for v in state.values() if v.is_floating_point())
+    backbone = pretrain.course_backbone(quick_run)
+    assert backbone.out_channels == card["config"]["out_channels"]
+
+
+def test_pretrain_is_deterministic(quick_run, tmp_path):
+    out = tmp_path / "again.pt"
+    pretrain.main(["--profile", "quick", "--out", str(out)])
+    assert pretrain._sha256(out) == pretrain._sha256(quick_run)
+
+
+def test_course_backbone_refuses_a_changed_file(quick_run, tmp_path):
+    bad = tmp_path / "cb.pt"
+    bad.write_bytes(quick_run.read_bytes()[:-10] + b"0123456789")
+    (tmp_path / "cb.json").write_text(quick_run.with_suffix(".json").read_text())
+    with pytest.raises(ValueError, match="sha256"):
+        pretrain.course_backbone(bad)
+    with pytest.raises(FileNotFoundError, match="python -m vpr_nb.pretrain"):
+        pretrain.course_backbone(tmp_path / "missing.pt")
+    (tmp_path / "lonely.pt").write_bytes(b"x")
+    with pytest.raises(FileNotFoundError, match="card"):
+        pretrain.course_backbone(tmp_path / "lonely.pt")
+
+
+def test_committed_checkpoint_is_small_and_keeps_its_recall():
+    """Frozen + GeM on a world seed it never saw: at least what its card records (minus 0.01)."""
+    card = pretrain.card()
+    assert pretrain.CHECKPOINT.stat().st_size <= 3 * 2**20
+    backbone = pretrain.course_backbone()
+    assert not any(p.requires_grad for p in backbone.features.parameters())
+    got = pretrain.held_out_recalls(backbone, ns=(1, 5, 10))
+    for world, rows in card["held_out"].items():
+        for n, want in rows["course backbone + GeM"].items():
+            assert got[world]["course backbone + GeM"][n] >= want - 0.01, (world, n, got[world], want)
+
+
+def test_corpus_is_disjoint_from_notebook_worlds():
+    with pytest.raises(ValueError, match=">= 100"):
+        pretrain.PretrainConfig(city_seeds=(0, 100))
+    with pytest.raises(ValueError, match="at least one world"):
+        pretrain.PretrainConfig(city_seeds=(), route_seeds=())
+    cfg = pretrain.PretrainConfig()
+    used = {s for p, s, _ in pretrain.HELD_OUT} | {pretrain.SELECTION_WORLD[1]}
+    assert not used & (set(cfg.city_seeds) | set(cfg.route_seeds))
+
+
+def test_place_labels_group_nearby_views_facing_the_same_way():
+    ds = make_dataset("city", seed=100, splits=("val",)).val
+    lab = pretrain.place_labels(ds, 3)
+    utm = np.concatenate([ds.db_utm, ds.q_utm])
+    head = np.concatenate([ds.db_heading, ds.q_heading]) % 360
+    for g in np.unique(lab)[:50]:
+        m = lab == g
+        assert np.ptp(utm[m], axis=0).max() < 45          # 3 spots of 10 m + query offsets
+        assert len(np.unique(head[m] // 90)) == 1
+
+
+@pytest.mark.parametrize("k, trainable", [(0, []), (1, [9]), (2, [6, 7, 9]), (4, [0, 1, 3, 4, 6, 7, 9])])
+def test_small_cnn_trainable_blocks(k, trainable):
+    net = SmallCNN(width=8, out_channels=16).set_trainable_blocks(k)
+    layers = [i for i, layer in enumerate(net.features) if any(p.requires_grad for p in layer.parameters())]
+    assert layers == trainable
+    out = net(torch.randn(2, 3, 32, 48))
+    assert out.requires_grad == (k > 0)
+    with pytest.raises(ValueError, match="trainable_blocks"):
+        net.set_trainable_blocks(5)

@@ -1,0 +1,94 @@
+"""Committed reproduce-profile results, shown in the stored notebooks beside the live CI-profile run.
+
+A notebook's CI profile must run in a minute, so its live numbers come from one seed and a small
+budget. Its takeaways rest on the **reproduce profile** (≥ 5 seeds, full budget): when the notebook
+runs with ``PROFILE = "reproduce"`` (``make reproduce``) it calls :func:`save`, which writes
+``notebooks/results/<name>.json`` stamped with the git commit, date, library versions and the
+notebook's experiment config; in every profile it then calls :func:`load` with the config its code
+has *now*, and shows the committed table. :func:`load` refuses a file whose config differs from the
+notebook's (a changed epoch count, lr, seed list, …), so nbval fails and a result can never go stale
+silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "reproduce"``) and commit.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+
+RESULTS_DIR = Path(__file__).resolve().parents[1] / "notebooks" / "results"
+
+
+def _canonical(value):
+    """``value`` as JSON would give it back (tuples → lists, numpy scalars → numbers, keys → str)."""
+    from .report import _jsonable
+    return json.loads(json.dumps(_jsonable(value)))
+
+
+def _path(name: str, results_dir) -> Path:
+    if not isinstance(name, str) or not name or "/" in name:
+        raise ValueError(f"name must be a notebook stem such as '03_distance_ranking_weighted_loss', got {name!r}")
+    return Path(results_dir if results_dir is not None else RESULTS_DIR) / f"{name}.json"
+
+
+def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> Path:
+    """Write ``results`` (numbers, strings, lists, dicts) for notebook ``name`` with its ``config``
+    and a stamp (git commit, date, versions), atomically. Returns the path."""
+    from .report import environment_header
+
+    if not isinstance(config, Mapping) or not isinstance(results, Mapping):
+        raise ValueError("config and results must be dicts (the experiment's settings and its tables)")
+    path = _path(name, results_dir)
+    stamp = environment_header("reproduce")
+    stamp["date"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d")
+    doc = {"notebook": name, "stamp": stamp, "config": _canonical(config), "results": _canonical(results)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n", encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+def load(name: str, config: Mapping, *, results_dir=None) -> dict:
+    """The committed results of notebook ``name``; ``config`` must equal the one they were made with.
+
+    Raises ``FileNotFoundError`` when nothing is committed and ``ValueError`` naming the keys that
+    differ when the notebook's experiment changed since (the results are stale).
+    """
+    path = _path(name, results_dir)
+    if not path.is_file():
+        raise FileNotFoundError(f"no committed reproduce-profile results at notebooks/results/{path.name}; "
+                                f"run the notebook with PROFILE = 'reproduce' (make reproduce) and commit the file")
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    want, have = _canonical(config), doc.get("config")
+    if want != have:
+        keys = sorted(k for k in set(want) | set(have or {}) if (have or {}).get(k) != want.get(k))
+        raise ValueError(f"notebooks/results/{path.name} is stale: its experiment config differs from the "
+                         f"notebook's in {keys} (committed {[(have or {}).get(k) for k in keys]}, notebook "
+                         f"{[want.get(k) for k in keys]}); re-run the notebook with PROFILE = 'reproduce' and commit")
+    return doc
+
+
+def mean_std(values) -> tuple[float, float]:
+    """Mean and sample standard deviation (0 for a single value) of a list of numbers."""
+    vals = [float(v) for v in values]
+    if not vals:
+        raise ValueError("mean_std needs at least one value")
+    m = sum(vals) / len(vals)
+    sd = math.sqrt(sum((v - m) ** 2 for v in vals) / (len(vals) - 1)) if len(vals) > 1 else 0.0
+    return m, sd
+
+
+def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B") -> str:
+    """A sentence on ``a − b`` over paired seeds: a verdict only when |mean| > 2 standard errors."""
+    if len(a_vals) != len(b_vals) or not len(a_vals):
+        raise ValueError(f"paired_verdict needs the same non-zero number of seeds, got {len(a_vals)} and {len(b_vals)}")
+    diff = [float(x) - float(y) for x, y in zip(a_vals, b_vals)]
+    m, sd = mean_std(diff)
+    if len(diff) < 2:
+        return f"{a} − {b} = {m:+.3f} on one seed: no spread, no verdict"
+    se = sd / math.sqrt(len(diff))
+    if abs(m) > 2 * se:
+        return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): {a if m > 0 else b} is better"
+    return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): within 2 SE, no verdict"
