@@ -41,7 +41,7 @@ def test_pretrain_command_writes_checkpoint_and_card(quick_run):
 
 
 def test_pretrain_is_deterministic(quick_run, tmp_path):
-    out = tmp_path / "again.pt"
+    out = tmp_path / "cb.pt"             # same file name: torch.save stores it in the archive
     pretrain.main(["--profile", "quick", "--out", str(out)])
     assert pretrain._sha256(out) == pretrain._sha256(quick_run)
 

@@ -23,8 +23,13 @@ CELLS = [
 * see with numbers **why mining matters**: for an untrained network, how many *random* negatives
   violate the margin, compared with *hard* (mined) negatives;
 * see why, in a world with 4 views per place, the positive must face the query's way;
-* train the recipe with `vpr_nb.training.train` and reach **test Recall@1 ≥ 0.70** on the tiny `city`
-  world, far above the raw-pixel baseline of notebook 01, with learning curves and retrievals.
+* train the recipe with `vpr_nb.training.train` from random weights on the tiny `city` world, far above
+  the raw-pixel baseline of notebook 01, with learning curves and retrievals;
+* learn to recognise a **collapsed** run (every image mapped to nearly the same descriptor) from two
+  numbers the training loop records, and meet the **course backbone**: the pretrained network that
+  notebooks 03–07 fine-tune, as the papers fine-tune ImageNet-VGG16 and DINOv2.
+
+This notebook trains from scratch on purpose: it teaches training. The papers never do.
 """),
     ("code", r"""
 PROFILE = "ci"  # "ci": the recipe only (what CI checks); "reproduce": + two ablations (no heading filter, random negatives)
@@ -43,14 +48,16 @@ from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, evalua
 from vpr_nb.losses import triplet_loss
 from vpr_nb.mining import mine_triplets
 from vpr_nb.models import build_model
+from vpr_nb.pretrain import course_backbone
 from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
-from vpr_nb.training import TrainConfig, TripletSource, train
+from vpr_nb.training import TrainConfig, TripletSource, mean_pairwise_cosine, train
 
 if PROFILE not in ("ci", "reproduce"):
     raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
 EPOCHS = 14                                  # the recipe (about 2 s per epoch on 2 cores)
 ABLATIONS = PROFILE == "reproduce"           # two more 14-epoch trainings
+HEALTH_EPOCHS = 4                            # the collapsing run beside the recipe (training health)
 MARGIN, M, HEADING_DIFF = 0.1, 5, 45.0       # Eq. (3) margin, negatives per query, positive heading filter
 NS = (1, 5, 10)
 vpr_nb.seed_everything(0)
@@ -83,6 +90,14 @@ Each query then forms $M$ triplets $(q, p^*, n_j)$, $j = 1..M$. The course's syn
 database headings per place (like Pittsburgh's 24 views per panorama), so a potential positive 5 m
 away may look the other way; `max_heading_diff=45` keeps only potential positives facing the query's
 way (more on this below).
+
+**GeM pooling** (Radenović, Tolias & Chum, TPAMI 2018, Eq. 3) turns the CNN's feature map, $C$ channels
+at $n$ positions $x_{c,1..n} \ge 0$, into one $C$-dimensional descriptor, then L2-normalises it:
+
+$$f_c = \Big(\frac{1}{n}\sum_{i=1}^{n} x_{c,i}^{\,p}\Big)^{1/p}, \tag{GeM}$$
+
+with a learnable exponent $p$ (3 at the start): $p = 1$ is mean pooling, $p \to \infty$ max pooling.
+`vpr_nb.aggregation.GeM` implements it; notebook 04 compares it with NetVLAD.
 """),
     ("md", r"""
 ## Build it: Eq. (3) in plain torch
@@ -248,26 +263,86 @@ plt.tight_layout()
 plt.show()
 """),
     ("md", r"""
+### Training health: how to recognise a collapsed run
+
+Two numbers that `train` records every epoch tell a healthy run from a collapsed one:
+
+* the **collapsed loss**: the loss the same batches would have if *every* image had the same descriptor.
+  For Eq. (3) every triplet then costs exactly the margin, so it is $M \cdot m = 5 \times 0.1 = 0.5$ per
+  query. A loss that stays near it means the network has not separated anything;
+* the **mean pairwise cosine** of the validation database descriptors: near 1, all images look alike
+  to the network.
+
+Below, the recipe beside the same recipe with a 10× larger learning rate (0.5), for a few epochs.
+"""),
+    ("code", r"""
+# NBVAL_IGNORE_OUTPUT
+# (wall time varies)
+t0 = time.perf_counter()
+vpr_nb.seed_everything(0)
+hot = build_model("small_cnn", "gem")
+hot_history = train(hot, TripletSource(ds.train, "triplet", margin=MARGIN, num_negatives=M, max_heading_diff=HEADING_DIFF),
+                    ds.val, TrainConfig(epochs=HEALTH_EPOCHS, optimizer="sgd", lr=0.5, seed=0), progress=False)
+print(f"lr 0.5 run: {HEALTH_EPOCHS} epochs in {time.perf_counter() - t0:.1f} s")
+"""),
+    ("code", r"""
+print(f"{'':>6s}{'recipe (lr 0.05)':^34s}{'lr 0.5':^34s}")
+print(f"{'epoch':>6s}" + f"{'loss':>8s}{'collapsed':>10s}{'cos':>7s}{'val R@1':>9s}" * 2)
+for a, b in zip(history.epochs, hot_history.epochs):
+    print(f"{a['epoch'] + 1:6d}" + "".join(f"{e['loss']:8.3f}{e['collapsed_loss']:10.3f}{e['mean_cosine']:7.3f}{e['val'][1]:9.3f}"
+                                           for e in (a, b)))
+fig, axes = plt.subplots(1, 3, figsize=(12, 3))
+for h, name in ((history, "recipe, lr 0.05"), (hot_history, "lr 0.5")):
+    x = [e["epoch"] + 1 for e in h.epochs]
+    axes[0].plot(x, np.array(h.losses) / np.array(h.collapsed_losses), marker="o", label=name)
+    axes[1].plot(x, h.mean_cosines, marker="o", label=name)
+    axes[2].plot(x, h.recalls(1), marker="o", label=name)
+axes[0].axhline(1.0, color="grey", ls="--", lw=1)
+axes[0].set(xlabel="epoch", ylabel="loss / collapsed loss", title="1 = no better than a collapsed embedding", ylim=(0, 1.1))
+axes[1].set(xlabel="epoch", ylabel="mean pairwise cosine", title="val database descriptors", ylim=(0.5, 1.0))
+axes[2].set(xlabel="epoch", ylabel="val R@1", title="validation Recall@1", ylim=(0, 1))
+axes[0].legend()
+plt.tight_layout()
+plt.show()
+"""),
+    ("md", r"""
+With the large learning rate the loss stays close to its collapsed value and the descriptors crowd
+together (mean cosine near 1) while validation recall falls: the network maps every street view to
+nearly the same vector, and every triplet again costs about the margin. The recipe's loss drops well
+below the collapsed value and its descriptors spread out. Whenever a later run disappoints, look at
+these two columns first.
+
 ### Test Recall@N against the baselines
+
+The last row is the **course backbone** (`vpr_nb.pretrain.course_backbone()`), frozen, with GeM: a
+wider SmallCNN (48 channels) pretrained once with the Multi-Similarity loss on other synthetic worlds
+(world seeds ≥ 100, both presets, all conditions; never this world), the course's stand-in for the
+ImageNet-VGG16 of DW-T-Loss and the DINOv2 of SALAD. `python -m vpr_nb.pretrain` re-makes it; its card
+(`data_fixtures/course_backbone.json`) records how. Notebooks 03–07 start from it, as the papers start
+from theirs.
 """),
     ("code", r"""
 te = ds.test
 vpr_nb.seed_everything(0)
 untrained = build_model("small_cnn", "gem")
+course = build_model(course_backbone(), "gem")
 results = {
     "raw pixels": evaluate_descriptors(raw_pixel_descriptors(te.db_images), raw_pixel_descriptors(te.q_images),
                                        te.db_utm, te.q_utm, te.pos_radius, NS),
     "untrained CNN + GeM": evaluate_model(untrained, te, NS),
     "trained CNN + GeM (T-Loss)": evaluate_model(model, te, NS),
+    "course backbone (frozen) + GeM": evaluate_model(course, te, NS),
 }
 print(f"tiny city test split ({len(te.q_images)} queries, {len(te.db_images)} database images)")
-print(f"{'method':28s}" + "".join(f"{'R@' + str(k):>8s}" for k in NS))
+cosines = {"untrained CNN + GeM": untrained, "trained CNN + GeM (T-Loss)": model, "course backbone (frozen) + GeM": course}
+cosines = {k: mean_pairwise_cosine(compute_descriptors(m, te.db_images)) for k, m in cosines.items()}
+cosines["raw pixels"] = mean_pairwise_cosine(raw_pixel_descriptors(te.db_images))
+print(f"{'method':32s}" + "".join(f"{'R@' + str(k):>8s}" for k in NS) + f"{'mean cos':>10s}")
 for name, r in results.items():
-    print(f"{name:28s}" + "".join(f"{r[k]:8.3f}" for k in NS))
+    print(f"{name:32s}" + "".join(f"{r[k]:8.3f}" for k in NS) + f"{cosines[name]:10.3f}")
 trained_r1 = results["trained CNN + GeM (T-Loss)"][1]
-target_met = trained_r1 >= 0.70
-print(f"trained R@1 = {trained_r1:.3f} (target ≥ 0.70): {'met' if target_met else 'NOT met'}")
-print(f"gain over raw pixels: {trained_r1 - results['raw pixels'][1]:+.3f} R@1")
+print(f"from scratch: {trained_r1 - results['raw pixels'][1]:+.3f} R@1 over raw pixels, "
+      f"{trained_r1 - results['course backbone (frozen) + GeM'][1]:+.3f} R@1 vs the frozen course backbone")
 plots.plot_recalls(results, title="city tiny test")
 plt.show()
 """),
@@ -340,7 +415,6 @@ else:
 record("02_triplet_baseline", {
     "epochs": EPOCHS,
     **{f"{name} R@{k}": round(r[k], 3) for name, r in results.items() for k in NS},
-    "target trained R@1 >= 0.70": "met" if target_met else "NOT met",
     "best epoch": history.best_epoch + 1,
     "best val R@1": round(history.best_recall, 3),
     "untrained: violating fraction, random negatives": round(mining["random negatives"]["violating"], 3),
@@ -350,6 +424,8 @@ record("02_triplet_baseline", {
     "untrained: chosen positive faces the query's way": round(float(same_way.mean()), 3),
     "trained: chosen positive faces the query's way": round(float(same_way_trained.mean()), 3),
     **{f"ablation {name} R@{k}": round(r[k], 3) for name, (r, _) in ablations.items() for k in NS},
+    "lr 0.5 run, last epoch: loss / collapsed loss": round(hot_history.losses[-1] / hot_history.collapsed_losses[-1], 3),
+    "lr 0.5 run, last epoch: mean cosine": round(hot_history.mean_cosines[-1], 3),
 })
 """),
     ("md", r"""
@@ -400,8 +476,28 @@ assert my_triplet_loss(q_t, q_t, q_t[:, None, :] + 10, 0.1).item() == 0.0
 * Weak GPS supervision needs care: the positive must actually show the query's place; with a random
   initial network and several views per place, a heading filter supplies what ImageNet pre-training
   supplies on Pittsburgh.
-* A 14-epoch CPU run lifts test R@1 far above raw pixels (numbers above); the next notebook changes
-  only the loss.
+* A 14-epoch CPU run from random weights lifts test R@1 far above raw pixels (numbers above); one seed
+  of from-scratch training is noisy (its validation R@1 still jumps by several points from epoch to epoch).
+* A collapsed run is easy to spot: its loss stays near the collapsed value ($M \cdot m$ for Eq. 3) and
+  the mean pairwise cosine of its descriptors approaches 1 (the lr 0.5 run above); the healthy run's
+  loss falls well below it.
+* The frozen course backbone, pretrained on other worlds, is compared with the from-scratch model in
+  the test table above. Notebooks 03–07 fine-tune it, as the papers fine-tune a pretrained backbone,
+  and change only the loss, the aggregator or the batches.
+
+## References
+
+* J. Xiong, Y. Xu, Z. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place
+  Recognition* (DW-T-Loss): Eq. (3), the triplet loss; notebook 03 reproduces its loss study.
+* R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic, *NetVLAD: CNN architecture for weakly
+  supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247);
+  code: [Relja/netvlad](https://github.com/Relja/netvlad), PyTorch port
+  [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+* F. Radenović, G. Tolias, O. Chum, *Fine-tuning CNN image retrieval with no human annotation*, TPAMI
+  2018, [arXiv:1711.02512](https://arxiv.org/abs/1711.02512) (GeM pooling);
+  code: [filipradenovic/cnnimageretrieval-pytorch](https://github.com/filipradenovic/cnnimageretrieval-pytorch).
+* F. Schroff, D. Kalenichenko, J. Philbin, *FaceNet: a unified embedding for face recognition and
+  clustering*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832) (semi-hard negatives).
 """),
 ]
 
