@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 PROFILE ?= reproduce
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with notebooks/sanitize.cfg --nbval-cell-timeout 600
 
-.PHONY: venv test test-fast reproduce lab bench clean assignments
+.PHONY: venv test test-fast reproduce pretrain lab bench clean assignments
 
 venv: $(STAMP)
 
@@ -29,6 +29,10 @@ test-fast: venv
 
 reproduce: venv
 	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports
+
+# re-make the course backbone (data_fixtures/course_backbone.pt + .json), about 6 min on 2 cores
+pretrain: venv
+	$(BIN)/python -m vpr_nb.pretrain
 
 assignments: venv
 	$(BIN)/python -m vpr_nb.assignments generate notebooks assignments
