@@ -146,3 +146,17 @@ def test_cli_reports_bad_arguments(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         report.main(["--profile", "ci", "--out", str(tmp_path), "--notebooks-dir", str(tmp_path)])
     assert exc.value.code == 2 and "no notebook" in capsys.readouterr().err
+
+
+def test_find_notebooks_absolute_pattern_and_checkpoints(tmp_path):
+    nbdir = tmp_path / "nbs"
+    (nbdir / ".ipynb_checkpoints").mkdir(parents=True)
+    for p in (nbdir / "00_a.ipynb", nbdir / "01_b.ipynb", nbdir / ".ipynb_checkpoints" / "00_a-checkpoint.ipynb"):
+        _write_nb(p, [([], "1")])
+    assert [p.name for p in report.find_notebooks(nbdir, "**/*.ipynb")] == ["00_a.ipynb", "01_b.ipynb"]
+    assert [p.name for p in report.find_notebooks(nbdir, str(nbdir / "0[1]_*.ipynb"))] == ["01_b.ipynb"]
+    assert [p.name for p in report.find_notebooks(nbdir, str(nbdir) + "/**/*.ipynb")] == ["00_a.ipynb", "01_b.ipynb"]
+    with pytest.raises(FileNotFoundError, match="no notebook"):
+        report.find_notebooks(nbdir, str(tmp_path / "elsewhere" / "*.ipynb"))
+    with pytest.raises(ValueError, match="pattern"):
+        report.find_notebooks(nbdir, "")

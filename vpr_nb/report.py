@@ -176,11 +176,25 @@ def environment_header(profile: str) -> dict:
 
 
 def find_notebooks(notebooks_dir, pattern: str = DEFAULT_PATTERN) -> list[Path]:
-    """Notebooks in ``notebooks_dir`` matching ``pattern``, sorted by name (00, 01, ...)."""
+    """Notebooks in ``notebooks_dir`` matching ``pattern``, sorted by name (00, 01, ...).
+
+    ``pattern`` is a glob relative to ``notebooks_dir`` (``**`` recurses), or an absolute glob
+    (e.g. ``/repo/notebooks/0[01]_*.ipynb``). Jupyter's autosave copies under
+    ``.ipynb_checkpoints/`` are never run.
+    """
+    import glob as _glob
+
     notebooks_dir = Path(notebooks_dir)
     if not notebooks_dir.is_dir():
         raise FileNotFoundError(f"notebook folder {notebooks_dir} does not exist; run from the repository root")
-    found = sorted(p for p in notebooks_dir.glob(pattern) if p.suffix == ".ipynb")
+    if not isinstance(pattern, str) or not pattern:
+        raise ValueError(f"pattern must be a non-empty glob string, got {pattern!r}")
+    if Path(pattern).is_absolute():
+        hits = (Path(p) for p in _glob.glob(pattern, recursive=True))
+    else:
+        hits = notebooks_dir.glob(pattern)
+    found = sorted((p for p in hits if p.suffix == ".ipynb" and p.is_file()
+                    and ".ipynb_checkpoints" not in p.parts), key=lambda p: (p.name, str(p)))
     if not found:
         raise FileNotFoundError(f"no notebook in {notebooks_dir} matches {pattern!r}; "
                                 f"try the default {DEFAULT_PATTERN!r}")
