@@ -31,10 +31,13 @@ def plot_map(dataset, ax=None, show_scene: bool = True, title: str | None = None
     if scene is not None:
         segs = np.stack([scene.a, scene.b], 1)
         walls = scene.kind == 0
-        ax.plot(segs[walls][:, :, 0].T, segs[walls][:, :, 1].T, color="0.75", lw=0.8, zorder=0)
+        lines = ax.plot(segs[walls][:, :, 0].T, segs[walls][:, :, 1].T, color="0.75", lw=0.8, zorder=0)
+        if lines:
+            lines[0].set_label("walls")
         trees = scene.kind == 1
         mid = segs[trees].mean(1)
-        ax.scatter(mid[:, 0], mid[:, 1], s=2, color="#8fbf7f", zorder=0)
+        # dark grey, never a split colour (SPLIT_COLOURS): trees must not read as test images
+        ax.scatter(mid[:, 0], mid[:, 1], s=2, color="0.35", zorder=0, label="trees" if len(mid) else None)
     for k, name in enumerate(SPLITS):
         m = dataset.db_split == k
         if m.any():
@@ -46,7 +49,7 @@ def plot_map(dataset, ax=None, show_scene: bool = True, title: str | None = None
     ax.set_aspect("equal")
     ax.set_xlabel("easting (m)")
     ax.set_ylabel("northing (m)")
-    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.18), frameon=False)
+    ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.18), frameon=False)
     ax.set_title(title or f"{dataset.name}: {len(dataset.db_images)} database images, {len(dataset.q_images)} queries")
     return ax.figure
 

@@ -142,7 +142,9 @@ for ds in (city, route):
 
 Train / val / test are **geographically disjoint** bands (the gap between them is wider than the
 positive radius), so no test query has a positive among the training images: a model cannot pass the
-test by memorising the training places.
+test by memorising the training places. Colours mark the splits only (blue train, orange val, green
+test; dots database, crosses queries); the scene is drawn in greys: walls as light grey lines, trees as
+dark grey dots.
 """),
     ("code", r"""
 fig, axes = plt.subplots(2, 1, figsize=(10, 8.5))
@@ -411,6 +413,27 @@ record("00_synthetic_world", {
 * Content changes continuously with distance because of parallax, Eq. (3): near structure moves, the skyline does not.
 * Every difficulty knob sits in `WorldConfig`; splits are geographically disjoint; the same seed gives
   the same world. Notebook 01 turns these images into descriptors and measures Recall@N.
+
+## References
+
+* S. Lowry, N. Sünderhauf, P. Newman, J. J. Leonard, D. Cox, P. Corke, M. J. Milford. *Visual Place
+  Recognition: A Survey.* IEEE Transactions on Robotics 32(1), 2016.
+  [doi:10.1109/TRO.2015.2496823](https://doi.org/10.1109/TRO.2015.2496823) (the task, "place", conditions).
+* R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
+  place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247) (Pittsburgh, positives
+  within 25 m, geographically split evaluation); code: [github.com/Relja/netvlad](https://github.com/Relja/netvlad),
+  [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+* A. Torii, J. Sivic, T. Pajdla, M. Okutomi. *Visual Place Recognition with Repetitive Structures.* CVPR 2013
+  (the Pittsburgh 250k street-view database the `city` preset imitates; repetitive facades = aliasing).
+* F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
+  Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020 (conditions, the 25 m threshold);
+  code: [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
+* N. Sünderhauf, P. Neubert, P. Protzel. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
+  All Four Seasons.* ICRA 2013 Workshop on Long-Term Autonomy (the Nordland railway the `route` preset imitates).
+* G. Berton, R. Mereu, G. Trivigno, C. Masone, G. Csurka, T. Sattler, B. Caputo. *Deep Visual Geo-localization
+  Benchmark.* CVPR 2022. [arXiv:2204.03444](https://arxiv.org/abs/2204.03444); code:
+  [github.com/gmberton/deep-visual-geo-localization-benchmark](https://github.com/gmberton/deep-visual-geo-localization-benchmark)
+  (dataset formats and evaluation conventions).
 """),
 ]
 

@@ -250,8 +250,9 @@ print(f"wrong top-1 answers: {int(wrong.sum())} of {len(correct)}; their median 
 
 Raw-pixel R@1 on the tiny city test split as each difficulty knob of `WorldConfig` moves, the others at
 their defaults (only the test split is generated, so each world takes about a second). Each point
-is the mean over the world seeds; the error bars show the spread (min to max) across seeds: with ~150
-test queries per world, differences of a few hundredths are noise.
+is the mean over the world seeds; the error bars show the spread (min to max) across seeds. Each world's
+tiny test split has only a few hundred queries (the count printed under the retrieval grid above), so
+differences smaller than the seed-to-seed spread printed below are noise.
 """),
     ("code", r"""
 # NBVAL_IGNORE_OUTPUT
@@ -345,6 +346,26 @@ record("01_retrieval_and_recall", {
 * Without learning, raw pixels and a random CNN retrieve the right place only occasionally (the numbers
   above); the synthetic world's condition changes, camera jitter and parallax are what defeat them.
   The following notebooks learn descriptors that do much better.
+
+## References
+
+* J. Johnson, M. Douze, H. Jégou. *Billion-scale similarity search with GPUs.* IEEE Transactions on Big Data,
+  2019. [arXiv:1702.08734](https://arxiv.org/abs/1702.08734); code:
+  [github.com/facebookresearch/faiss](https://github.com/facebookresearch/faiss) (`IndexFlatIP`, `IndexFlatL2`).
+* R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
+  place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247) (Recall@N with a 25 m
+  threshold on Pittsburgh and Tokyo 24/7); code: [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+* F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
+  Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020 (queries without a positive are left out);
+  code: [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
+* G. Berton, R. Mereu, G. Trivigno, C. Masone, G. Csurka, T. Sattler, B. Caputo. *Deep Visual Geo-localization
+  Benchmark.* CVPR 2022. [arXiv:2204.03444](https://arxiv.org/abs/2204.03444); code:
+  [github.com/gmberton/deep-visual-geo-localization-benchmark](https://github.com/gmberton/deep-visual-geo-localization-benchmark)
+  (one evaluation protocol across datasets).
+* S. Lowry, N. Sünderhauf, P. Newman, J. J. Leonard, D. Cox, P. Corke, M. J. Milford. *Visual Place
+  Recognition: A Survey.* IEEE Transactions on Robotics 32(1), 2016.
+  [doi:10.1109/TRO.2015.2496823](https://doi.org/10.1109/TRO.2015.2496823) (what makes VPR hard: conditions,
+  viewpoint, aliasing).
 """),
 ]
 
