@@ -313,7 +313,8 @@ def save_checkpoint(path, state: dict) -> Path:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     os.close(fd)
     try:
-        torch.save(state, tmp)
+        with open(tmp, "wb") as f:          # a file object: the archive is named "archive", not after the
+            torch.save(state, f)            # random temporary name, so equal states give equal bytes
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
