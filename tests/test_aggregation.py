@@ -445,3 +445,26 @@ def test_salad_hidden_dim_sets_the_head_width_and_keeps_the_published_names():
     ref = salad_reference(dict(salad.named_parameters()), features, token)
     assert torch.allclose(salad((features, token)), ref, atol=1e-5)
     assert SALAD().hidden_dim == 512
+
+
+def test_sample_local_descriptors_skips_exactly_zero_features():
+    # a backbone ending in a ReLU switches whole positions off: those have no direction to cluster
+    torch.manual_seed(0)
+    maps = torch.relu(torch.randn(4, 6, 3, 5))
+    maps[:, :, 0, :] = 0.0                       # the first row of every map is exactly zero
+    maps[2, :, 1:, :] = 0.0                      # image 2: nothing but zeros
+    maps[3, :, 1:, 1:] = 0.0                     # image 3: two non-zero positions left, (1, 0) and (2, 0)
+    out = sample_local_descriptors(maps, per_image=4, seed=0)
+    assert out.shape == (4 + 4 + 0 + 2, 6)
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-6)
+    image3 = torch.nn.functional.normalize(maps[3, :, 1:, 0].T, dim=1).numpy()
+    assert sorted(np.argmin(np.linalg.norm(image3[None] - out[-2:, None], axis=2), axis=1)) == [0, 1]
+    kept = sample_local_descriptors(maps, per_image=4, seed=0, skip_zero=False)
+    assert kept.shape == (16, 6) and (np.linalg.norm(kept, axis=1) == 0).any()
+    dense = torch.randn(3, 4, 5, 6)                # no zero features: the same draw as before
+    assert np.array_equal(sample_local_descriptors(dense, 7, seed=1),
+                          sample_local_descriptors(dense, 7, seed=1, skip_zero=False))
+    with pytest.raises(ValueError, match="exactly zero"):
+        sample_local_descriptors(torch.zeros(2, 3, 2, 2), 1)
+    with pytest.raises(ValueError, match="skip_zero"):
+        sample_local_descriptors(dense, 1, skip_zero=1)

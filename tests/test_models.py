@@ -448,3 +448,31 @@ def test_init_netvlad_from_images_is_deterministic_and_checked():
     assert torch.equal(outs[0], outs[1])
     with pytest.raises(ValueError, match="NetVLAD"):
         init_netvlad(build_model("small_cnn", "gem"), imgs)
+
+
+def test_init_netvlad_skips_exactly_zero_local_features():
+    # a trained backbone whose final ReLU switches some positions off entirely (all channels 0):
+    # before the fix init_netvlad sampled them and init_from_clusters raised "all-zero row"
+    import numpy as np
+
+    from vpr_nb.aggregation import NetVLAD
+    from vpr_nb.models import init_netvlad
+
+    class HalfDead(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.cnn = SmallCNN(width=8, out_channels=16)
+            self.out_channels, self.stride = 16, 4
+
+        def forward(self, x):
+            fmap = self.cnn(x).clone()
+            fmap[:, :, ::2] = 0.0                  # every other row of positions is dead
+            return fmap
+
+    imgs = np.random.default_rng(0).integers(0, 256, (10, 16, 24, 3), dtype=np.uint8)
+    torch.manual_seed(0)
+    model = VPRModel(HalfDead(), NetVLAD(num_clusters=4, dim=16))
+    descs, cents = init_netvlad(model, imgs, per_image=12, niter=10, seed=0)
+    assert len(descs) == 10 * 12 and np.allclose(np.linalg.norm(descs, axis=1), 1.0, atol=1e-5)
+    assert model.aggregator.alpha > 0 and np.isfinite(model.aggregator.alpha)
+    assert torch.isfinite(model(torch.randn(2, 3, 16, 24))).all()

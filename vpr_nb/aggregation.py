@@ -193,21 +193,41 @@ class NetVLAD(nn.Module):
             self.centroids.copy_(cent_t)
 
 
-def sample_local_descriptors(feature_maps: torch.Tensor, per_image: int, seed: int = 0) -> np.ndarray:
+def sample_local_descriptors(feature_maps: torch.Tensor, per_image: int, seed: int = 0,
+                             skip_zero: bool = True) -> np.ndarray:
     """Draw ``per_image`` distinct positions of each map in ``[N, C, H, W]``, as NetVLAD's cluster step.
 
-    Returns an L2-normalised float32 ``[N·per_image, C]`` numpy array (image-major), ready for
+    Returns an L2-normalised float32 ``[M, C]`` numpy array (image-major), ready for
     :func:`kmeans_centroids`. Positions are drawn without replacement by ``np.random.default_rng(seed)``.
+
+    A local feature that is exactly zero (a backbone ending in a ReLU switches whole positions off)
+    has no direction, so it cannot be L2-normalised nor assigned to a centroid by cosine. With
+    ``skip_zero`` (the default) such positions are never drawn: each image gives ``per_image``
+    non-zero features, or all it has if fewer, so ``M ≤ N·per_image``; on maps without zero
+    features the draw is the same as without ``skip_zero`` and ``M = N·per_image``. With
+    ``skip_zero=False`` zero features are kept (as zero rows). Raises if every feature is zero.
     """
     _check_feature_map(feature_maps, "feature_maps", None)
+    if not isinstance(skip_zero, bool):
+        raise ValueError(f"skip_zero must be True or False, got {skip_zero!r}")
     n, c, h, w = feature_maps.shape
     per_image = check_int(per_image, "per_image", maximum=h * w)
     seed = check_int(seed, "seed", minimum=0)
     rng = np.random.default_rng(seed)
-    positions = np.argsort(rng.random((n, h * w)), axis=1)[:, :per_image]          # [N, per_image]
+    keys = rng.random((n, h * w))
     flat = feature_maps.detach().flatten(2).transpose(1, 2)                            # [N, HW, C]
+    if skip_zero:
+        nonzero = (flat != 0).any(dim=2).cpu().numpy()                                 # [N, HW]
+        if not nonzero.any():
+            raise ValueError("every local feature of feature_maps is exactly zero: there is nothing to cluster "
+                             "(check the backbone, e.g. a dead final ReLU)")
+        keys[~nonzero] = np.inf                                                        # zero features sort last
+    positions = np.argsort(keys, axis=1, kind="stable")[:, :per_image]                 # [N, per_image]
     picked = torch.gather(flat, 1, torch.from_numpy(positions).to(flat.device)[:, :, None].expand(-1, -1, c))
-    picked = F.normalize(picked.reshape(n * per_image, c).float(), p=2, dim=1)
+    picked = picked.reshape(n * per_image, c)
+    if skip_zero:
+        picked = picked[torch.from_numpy(np.take_along_axis(nonzero, positions, axis=1).reshape(-1)).to(picked.device)]
+    picked = F.normalize(picked.float(), p=2, dim=1)
     return picked.cpu().numpy()
 
 

@@ -387,7 +387,10 @@ def init_netvlad(model: "VPRModel", images, per_image: int = 20, niter: int = 50
     ``per_image`` L2-normalised local descriptors per image (from at most ``max_images`` images drawn
     at random; pytorch-NetVlad uses 50 000 descriptors, 100 per image), runs faiss k-means with K = the layer's
     ``num_clusters`` and calls ``init_from_clusters`` (centroids and α, Eq. (6) of notebook 04).
-    Returns ``(descriptors, centroids)``. Deterministic for a given ``seed``.
+    Local features that are exactly zero (positions a final ReLU switched off, common in a trained
+    backbone) have no direction and are never sampled (:func:`vpr_nb.aggregation.sample_local_descriptors`
+    with ``skip_zero=True``), so an image contributes fewer than ``per_image`` descriptors when it has
+    fewer non-zero ones. Returns ``(descriptors, centroids)``. Deterministic for a given ``seed``.
     """
     from .aggregation import NetVLAD, kmeans_centroids, sample_local_descriptors
     from .evaluation import as_image_array, images_to_tensor
@@ -402,7 +405,7 @@ def init_netvlad(model: "VPRModel", images, per_image: int = 20, niter: int = 50
     with torch.no_grad():
         for start in range(0, len(arr), batch_size):
             maps.append(model.backbone(images_to_tensor(arr[start:start + batch_size])))
-    descs = sample_local_descriptors(torch.cat(maps), per_image, seed=seed)
+    descs = sample_local_descriptors(torch.cat(maps), per_image, seed=seed, skip_zero=True)
     cents = kmeans_centroids(descs, model.aggregator.num_clusters, niter=niter, seed=seed)
     model.aggregator.init_from_clusters(cents, descs)
     return descs, cents
