@@ -8,10 +8,11 @@ Every fixture mimics the real on-disk format (folder layout, file names, CSV hea
 layout) with a handful of 16x12 JPEGs; the geometry is chosen so that the tests know the answer
 (which queries have which positives). Layouts:
 
-- ``pitts/``      ``datasets/pitts30k_test.mat`` (NetVLAD dbStruct), ``000/*.jpg``, ``queries_real/000/*.jpg``
+- ``pitts/``      ``datasets/pitts30k_{train,val,test}.mat`` (NetVLAD dbStruct), ``000/*.jpg``, ``queries_real/000/*.jpg``
 - ``gmberton/``   ``pitts30k/images/test/{database,queries}/@east@north@zone@...@.jpg``
-- ``msls/``       ``train_val/{cph,sf,trondheim}/{database,query}/{images/*.jpg,raw.csv,postprocessed.csv,
-                  seq_info.csv,subtask_index.csv}``
+- ``msls/``       ``train_val/{cph,sf,trondheim,london,amman}/{database,query}/{images/*.jpg,raw.csv,
+                  postprocessed.csv,seq_info.csv,subtask_index.csv}``; one london database JPEG is truncated
+- ``msls_val_only/`` the same files for cph and sf only (an MSLS folder holding only the val cities)
 - ``gsv_cities/`` ``Dataframes/{PRS,OSL}.csv``, ``Images/{PRS,OSL}/*.jpg``
 - ``nordland/``   ``ref/0000000.jpg`` ... (40 summer frames), ``query/0000000.jpg`` ... (4 winter frames = frames 0, 10, 20, 30)
 
@@ -107,6 +108,11 @@ def make_pitts(out: Path) -> None:
         q_utm.append((PITTS_ORIGIN[0] + de, PITTS_ORIGIN[1] + dn))
         write_jpeg(out / "queries_real" / name, 100 + i)
     write_pitts_mat(out / "datasets" / "pitts30k_test.mat", pitts_fields(db_names, db_utm, q_names, q_utm))
+    # train and val structs over the same images (val: the first two queries, so val != test)
+    write_pitts_mat(out / "datasets" / "pitts30k_train.mat",
+                    pitts_fields(db_names, db_utm, q_names, q_utm, which="train"))
+    write_pitts_mat(out / "datasets" / "pitts30k_val.mat",
+                    pitts_fields(db_names, db_utm, q_names[:2], q_utm[:2], which="val"))
 
 
 # --- gmberton ---------------------------------------------------------------------------------
@@ -140,7 +146,12 @@ MSLS_CITY_ORIGINS = {  # (easting, northing, lon, lat): rough real positions
     "cph": (724000.0, 6176000.0, 12.568, 55.676),
     "sf": (551000.0, 4181000.0, -122.419, 37.775),
     "trondheim": (569000.0, 7034000.0, 10.395, 63.430),
+    "london": (699000.0, 5710000.0, -0.128, 51.507),
+    "amman": (775000.0, 3537000.0, 35.930, 31.950),
 }
+# one extra database image of london (cluster 2) whose JPEG is cut in half: a truncated file
+MSLS_TRUNCATED_CITY = "london"
+MSLS_TRUNCATED = (201, 2, 2, False)
 # database: (E, N offset, unique_cluster ("" = none), pano); clusters group images of one place
 MSLS_DB = [(0, 0, 1, False), (5, 0, 1, False), (200, 0, 2, False), (205, 3, 2, False), (400, 0, "", False),
            (600, 0, 3, True)]
@@ -154,11 +165,17 @@ def _msls_key(rng: np.random.Generator) -> str:
     return "".join(rng.choice(alphabet, 22))
 
 
-def make_msls(out: Path) -> None:
+def make_msls(out: Path, cities=None) -> None:
+    """``cities``: the city folders to write (default all; ``("cph", "sf")`` gives a val-only MSLS folder)."""
     rng = np.random.default_rng(7)
     seed = 400
     for city, (e0, n0, lon0, lat0) in MSLS_CITY_ORIGINS.items():
+        if cities is not None and city not in cities:
+            continue
         for side, items in (("database", MSLS_DB), ("query", MSLS_Q)):
+            truncated = side == "database" and city == MSLS_TRUNCATED_CITY
+            if truncated:
+                items = list(items) + [MSLS_TRUNCATED]
             folder = out / "train_val" / city / side
             raw, post, seq, sub = [], [], [], []
             for j, it in enumerate(items):
@@ -173,6 +190,9 @@ def make_msls(out: Path) -> None:
                 seq.append([key, f"seq{city}{side[0]}{j // 3}", j % 3])
                 sub.append([in_all, j % 2 == 0, j % 2 == 1, False, night, False, False])
                 write_jpeg(folder / "images" / f"{key}.jpg", seed)
+                if truncated and j == len(items) - 1:
+                    data = (folder / "images" / f"{key}.jpg").read_bytes()
+                    (folder / "images" / f"{key}.jpg").write_bytes(data[:len(data) // 2])
                 seed += 1
             write_csv(folder / "raw.csv", ["key", "lon", "lat", "ca", "captured_at", "pano"], raw)
             write_csv(folder / "postprocessed.csv", ["key", "easting", "northing", "unique_cluster", "control_panel",
@@ -223,6 +243,7 @@ def make_nordland(out: Path) -> None:
 
 def main(root: Path = HERE) -> None:
     for name, fn in (("pitts", make_pitts), ("gmberton", make_gmberton), ("msls", make_msls),
+                     ("msls_val_only", lambda o: make_msls(o, ("cph", "sf"))),
                      ("gsv_cities", make_gsv), ("nordland", make_nordland)):
         out = root / name
         if out.exists():

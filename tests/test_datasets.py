@@ -46,7 +46,12 @@ def test_fixtures_are_small_and_reproducible(tmp_path):
     assert made == data
     from PIL import Image
 
+    bad = {p for p in made if p.suffix == ".jpg" and D.find_unreadable_images([tmp_path / p])}
+    assert len(bad) == 1 and MF.MSLS_TRUNCATED_CITY in str(next(iter(bad)))   # the one truncated JPEG
+    assert D.find_unreadable_images([FIX / p for p in bad])
     for p in made:
+        if p in bad:
+            continue
         if p.suffix == ".jpg":  # JPEG bytes may depend on the libjpeg build: compare the pixels
             a = np.asarray(Image.open(tmp_path / p), dtype=np.int16)
             b = np.asarray(Image.open(FIX / p), dtype=np.int16)
@@ -217,12 +222,17 @@ def test_gmberton_missing_folders_and_broken_link(tmp_path):
 
 # --------------------------------------------------------------------------------------------- MSLS
 def test_msls_fixture_all_cities():
-    s = D.load(FIX / "msls", "msls")
+    s = D.load(FIX / "msls", "msls", cities=["cph", "sf", "trondheim"])
     assert s.extras["cities"] == ["cph", "sf", "trondheim"]
     # per city: 6 db with 1 pano -> 5; 5 queries with 1 pano -> 4
     assert (s.num_db, s.num_q) == (15, 12)
-    assert s.db_place.tolist()[:5] == [1, 1, 2, 2, -1]
-    assert s.q_place.tolist()[:4] == [1, 2, 2, 4]
+    assert s.extras["db_cluster"].tolist()[:5] == [1, 1, 2, 2, -1]
+    assert s.extras["q_cluster"].tolist()[:4] == [1, 2, 2, 4]
+    # places are (city, unique_cluster) pairs, numbered globally: the same cluster id in two cities differs
+    assert s.db_place[0] == s.db_place[1] == s.q_place[0] and s.db_place[2] == s.q_place[1]
+    assert s.db_place[4] == -1 and s.db_place[0] != s.db_place[2]
+    cph, sf = s.db_region == "cph", s.db_region == "sf"
+    assert not set(s.db_place[cph & (s.db_place >= 0)]) & set(s.db_place[sf & (s.db_place >= 0)])
     assert s.db_region.tolist()[:5] == ["cph"] * 5 and s.q_region[-1] == "trondheim"
     np.testing.assert_allclose(s.db_utm[1], [724005.0, 6176000.0])
     np.testing.assert_allclose(s.q_heading[:2], [0.0, 37.5])
@@ -259,7 +269,7 @@ def test_msls_val_official_subset_and_key_list(tmp_path):
 def test_msls_options():
     s = D.load(FIX / "msls" / "train_val", "msls", cities=["trondheim"], exclude_panos=False)
     assert (s.num_db, s.num_q) == (6, 5) and s.name == "msls_trondheim"
-    with pytest.raises(FileNotFoundError, match=r"\['london'"):
+    with pytest.raises(FileNotFoundError, match=r"\['boston'"):
         D.load(FIX / "msls", "msls", cities="train")
     with pytest.raises(ValueError, match="val_subset"):
         D.load(FIX / "msls", "msls", val_subset="740")
@@ -299,7 +309,7 @@ def test_msls_missing_files(tmp_path):
     img.unlink()
     with pytest.raises(FileNotFoundError, match=img.name):
         D.load(root, "msls")
-    assert D.load(root, "msls", check_files=False).num_q == 12
+    assert D.load(root, "msls", check_files=False).num_q == 20
     (root / "train_val" / "sf" / "query" / "subtask_index.csv").unlink()
     with pytest.raises(FileNotFoundError, match="subtask_index.csv"):
         D.load(root, "msls", val_subset="official", check_files=False)
@@ -384,7 +394,7 @@ def test_nordland_fixture_protocols():
     assert _pos(s25)[1] == list(range(0, 21)) and _pos(s25)[0] == list(range(0, 11))
     s1 = D.load(FIX / "nordland", "nordland", query_frame_step=1)
     assert _pos(s1)[1] == [0, 1, 2]
-    with pytest.raises(ValueError, match="protocol must be one of"):
+    with pytest.raises(ValueError, match="protocol must be 'auto' or one of"):
         D.load(FIX / "nordland", "nordland", protocol="2frames")
 
 
@@ -395,8 +405,10 @@ def test_nordland_gmberton_and_custom_layouts(tmp_path):
     MF.write_jpeg(base / "queries" / "@0@11.90@@@@@5@@@@@@@@.jpg", 99)
     s = D.load(tmp_path / "nordland", "nordland", protocol="25m")
     assert s.extras["q_frame"].tolist() == [5] and sorted(_pos(s)[0]) == list(range(12))
-    s1 = D.load(tmp_path / "nordland", "nordland")
+    s1 = D.load(tmp_path / "nordland", "nordland", protocol="1frame")
     assert sorted(s1.extras["db_frame"][s1.positives()[0]].tolist()) == [4, 5, 6]
+    auto = D.load(tmp_path / "nordland", "nordland")       # gmberton's folder: its own +-10 frames
+    assert auto.extras["protocol"] == "25m" and sorted(_pos(auto)[0]) == list(range(12))
     raw = tmp_path / "raw"
     for f in (2, 3, 4, 7):
         MF.write_jpeg(raw / "summer" / f"image-{f:05d}.png", f)
@@ -498,3 +510,52 @@ def test_image_dataset_errors(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert s.image_dataset("db")[0][0].shape == (3, 12, 16)
+
+
+# --------------------------------------------------------------------------------------------- issue 13
+def test_msls_train_cities_keep_places_apart():
+    s = D.load(FIX / "msls", "msls", cities="train" if False else ["trondheim", "london", "amman"], check_files=True)
+    pairs = {}
+    for reg, cl, pl in zip(np.concatenate([s.db_region, s.q_region]),
+                           np.concatenate([s.extras["db_cluster"], s.extras["q_cluster"]]),
+                           np.concatenate([s.db_place, s.q_place])):
+        if cl >= 0:
+            pairs.setdefault(int(pl), set()).add((str(reg), int(cl)))
+    assert all(len(v) == 1 for v in pairs.values())             # one place = one (city, cluster)
+    assert len(pairs) == len({next(iter(v)) for v in pairs.values()}) == 3 * 3   # clusters 1, 2, 4 per city
+
+
+def test_unreadable_images_found_and_dropped():
+    s = D.load(FIX / "msls", "msls", cities=["london"])
+    bad = D.find_unreadable_images(s.db_paths + s.q_paths)
+    assert len(bad) == 1 and "truncated" in bad[0][1].lower()
+    bad_threads = D.find_unreadable_images((s.db_paths + s.q_paths) * 20, num_workers=2)
+    assert len(bad_threads) == 20
+    t = D.drop_images(s, [bad[0][0]])
+    assert t.num_db == s.num_db - 1 and t.num_q == s.num_q and bad[0][0] not in t.db_paths
+    assert len(t.extras["db_key"]) == t.num_db and len(t.db_place) == t.num_db
+    assert D.drop_images(s, []) is s
+    with pytest.raises(ValueError, match="sequence"):
+        D.find_unreadable_images("x.jpg")
+    with pytest.raises(ValueError, match="GeoSplit"):
+        D.drop_images("x", [])
+
+
+def test_gmberton_ignores_stray_files_as_the_benchmark(tmp_path):
+    root = _copy("gmberton", tmp_path) / "pitts30k"
+    db = root / "images" / "test" / "database"
+    MF.write_jpeg(db / MF.gmberton_name(544000.0, 4177609.0).replace(".jpg", ".JPG"), 1)
+    from PIL import Image
+    Image.new("RGB", (4, 4)).save(db / "thumbnail.png")
+    with pytest.warns(UserWarning, match=r"2 image file\(s\) not named \*\.jpg are ignored"):
+        s = D.load(root, "gmberton")
+    assert s.num_db == 6
+
+
+def test_recall_conventions_per_format():
+    assert D.recall_convention("msls") == "exclude"
+    assert {D.recall_convention(f) for f in ("pitts", "gmberton", "gsv-cities", "nordland")} == {"all"}
+    with pytest.raises(ValueError, match="unknown dataset format"):
+        D.recall_convention("tokyo")
+    split = D.TrainingSplit(D.load(FIX / "gmberton" / "pitts30k", "gmberton"), (8, 8))
+    assert split.recall_convention == "all"

@@ -1,24 +1,65 @@
-"""The reproduction command: presets, overrides, outputs, and DDP (2 CPU processes, gloo) vs 1 process."""
+"""The reproduction command: typed config, presets (model, step count), validation before data, val/test
+separation, per-format Recall@N, outputs, resume, and DDP (2 CPU processes, gloo) vs 1 process."""
 import json
+import math
 import os
+import shutil
 import subprocess
 import sys
+from dataclasses import asdict, fields
+from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
+from torch import nn
 
+from vpr_nb import config as C
 from vpr_nb.train import PRESETS, main, resolve_config
 
+FIX = Path(__file__).resolve().parents[1] / "data_fixtures"
 SMALL = ["--set", 'data.overrides={"blocks": [5, 2], "image_size": [16, 24], "queries_per_place": 1.0}',
          "--set", 'model.backbone_kwargs={"width": 8, "out_channels": 16}',
          "--set", "train.epochs=2", "--set", "train.step_size=1", "--set", "source.num_candidates=50",
          "--no-progress"]
 
 
+# ------------------------------------------------------------------------------------------ a DINOv2 stand-in
+class TinyViT(nn.Module):
+    """The interface of DINOv2's DinoVisionTransformer (patch 14) at a toy size."""
+
+    def __init__(self, dim=16, depth=5):
+        super().__init__()
+        self.patch_size, self.embed_dim = 14, dim
+        self.patch_embed = nn.Conv2d(3, dim, 14, 14)
+        self.cls_token = nn.Parameter(torch.zeros(1, 1, dim))
+        self.blocks = nn.ModuleList(nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, dim), nn.GELU())
+                                    for _ in range(depth))
+        self.norm = nn.LayerNorm(dim)
+
+    def prepare_tokens_with_masks(self, x, masks=None):
+        t = self.patch_embed(x).flatten(2).transpose(1, 2)
+        return torch.cat([self.cls_token.expand(len(t), -1, -1), t], 1)
+
+
+@pytest.fixture
+def dinov2(monkeypatch):
+    """DINOv2 from the hub clone when VPR_NB_DINOV2_HUB is set, else the tiny stand-in."""
+    if os.environ.get("VPR_NB_DINOV2_HUB"):
+        return
+    from vpr_nb import models
+
+    def fake(hub_dir=None, model="dinov2_vitb14", num_trainable_blocks=4):
+        return models.DINOv2Backbone(TinyViT(), num_trainable_blocks)
+    monkeypatch.setattr(models, "load_dinov2", fake)
+
+
+# ------------------------------------------------------------------------------------------ config
 def test_every_preset_resolves_and_prints(capsys):
     for name in PRESETS:
         assert main(["--preset", name, "--print-config"]) == 0
         cfg = json.loads(capsys.readouterr().out)
-        assert cfg["preset"] == name and {"data", "model", "source", "train"} <= set(cfg)
+        assert cfg["preset"] == name and {"data", "model", "source", "train", "eval"} <= set(cfg)
     dwt = resolve_config("dwt-pitts30k")
     assert dwt["train"]["lr"] == 1e-4 and dwt["train"]["seed"] == 123 and dwt["source"]["num_negatives"] == 10
     assert dwt["model"]["aggregator_kwargs"]["num_clusters"] == 64 and dwt["source"]["batch_size"] == 4
@@ -27,23 +68,310 @@ def test_every_preset_resolves_and_prints(capsys):
     assert salad["source"]["places_per_batch"] == 60 and salad["source"]["images_per_place"] == 4
 
 
-def test_overrides_are_parsed_and_checked():
-    cfg = resolve_config("dwt-pitts30k", ["source.loss=triplet", "train.lr=0.001", "train.ns=[1,5]"])
-    assert cfg["source"]["loss"] == "triplet" and cfg["train"]["lr"] == 0.001 and cfg["train"]["ns"] == [1, 5]
-    for bad, match in [("train.lrr=1", "unknown key"), ("optim.lr=1", "unknown config section"),
-                       ("lr=1", "section.key=value")]:
+def test_presets_hold_only_deviations_from_the_defaults():
+    for name, preset in PRESETS.items():
+        assert set(preset) <= set(C.SECTIONS), name
+        for section, values in preset.items():
+            default = asdict(C.SECTIONS[section]())
+            for key, value in values.items():
+                assert key in default, (name, section, key)
+                norm = list(value) if isinstance(value, tuple) else value
+                dflt = list(default[key]) if isinstance(default[key], tuple) else default[key]
+                assert norm != dflt, f"{name}: {section}.{key} repeats the default {value!r}"
+
+
+def test_overrides_are_parsed_by_type_and_checked():
+    cfg = C.resolve("dwt-pitts30k", ["source.loss=triplet", "train.lr=0.001", "train.ns=[1,5]", "train.amp=False",
+                                     "train.restore_best=false", "source.cache_refresh=none", "data.image_size=64,48",
+                                     "source.batches_per_epoch=7", "model.backbone_kwargs={\"trainable_from\": \"conv4\"}",
+                                     "eval.recall=exclude", "data.check_files=0"])
+    assert cfg.source.loss == "triplet" and cfg.train.lr == 0.001 and cfg.train.ns == (1, 5)
+    assert cfg.train.amp is False and cfg.train.restore_best is False and cfg.source.cache_refresh is None
+    assert cfg.data.image_size == (64, 48) and cfg.source.batches_per_epoch == 7 and cfg.data.check_files is False
+    assert cfg.model.backbone_kwargs == {"trainable_from": "conv4"} and cfg.eval.recall == "exclude"
+    assert resolve_config("dwt-pitts30k", ["train.ns=[1,5]"])["train"]["ns"] == [1, 5]
+    for bad, match in [("train.lrr=1", "unknown key 'lrr' in section 'train'; known keys: epochs"),
+                       ("data.imagesize=3", "unknown key 'imagesize' in section 'data'; known keys: format"),
+                       ("eval.n=3", "unknown key 'n' in section 'eval'"),
+                       ("source.refresh=3", "unknown key 'refresh' in section 'source'"),
+                       ("optim.lr=1", "unknown config section"), ("lr=1", "section.key=value"),
+                       ("train.amp=maybe", "train.amp must be true or false"),
+                       ("data.image_size=32", "data.image_size must have 2 entries"),
+                       ("train.epochs=2.5", "train.epochs must be an integer"),
+                       ("model.backbone_kwargs=[1]", "must be a dict"),
+                       ("train.optimizer=lbfgs", "optimizer must be one of")]:
         with pytest.raises(ValueError, match=match):
-            resolve_config("dwt-pitts30k", [bad])
+            C.resolve("dwt-pitts30k", [bad])
     with pytest.raises(ValueError, match="unknown preset"):
-        resolve_config("netvlad-tokyo")
+        C.resolve("netvlad-tokyo")
+    cfg = C.resolve("salad-gsv")
+    assert C.RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    with pytest.raises(ValueError, match="unknown key"):
+        C.RunConfig.from_dict(dict(cfg.to_dict(), source={"nope": 1}))
 
 
-def test_real_data_preset_without_root_says_how_to_fix(tmp_path):
+def test_the_whole_config_is_validated_before_any_data(tmp_path, capsys):
+    for sets, match in [(["data.format=tokyo"], "data.format must be one of"),
+                        (["source.sampler=nearest"], "source.sampler must be one of"),
+                        (['model.aggregator_kwargs={"num_channels": 768}'], "must not set 'num_channels'"),
+                        (["model.backbone=resnet"], "model.backbone must be one of"),
+                        (["data.check_images=maybe"], "data.check_images"),
+                        (["data.val_format=msls", "data.val_root=/data/msls"],
+                         "validation and test are the same data"),
+                        ([], "data.root")]:
+        roots = ["data.root=/data/msls", "data.gsv_root=/data/gsv", "data.val_root=/data/pitts"] if sets else []
+        with pytest.raises(ValueError, match=match):
+            C.validate(C.resolve("salad-cliquemining-msls", roots + sets))
+    # the CLI says it before writing anything
+    out = tmp_path / "never"
+    assert main(["--preset", "salad-gsv", "--out", str(out), "--no-progress"]) == 2
+    assert "data.root" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(ValueError, match="Nordland is a test set"):
+        C.validate(C.resolve("synthetic-city-triplet", ["data.format=nordland", "data.root=/x"]))
+    with pytest.raises(ValueError, match="no queries"):
+        C.validate(C.resolve("salad-gsv", ["source.kind=triplet", "data.root=/g", "data.val_root=/p",
+                                           "data.test_root=/m"]))
+
+
+def test_real_data_preset_without_root_says_how_to_fix():
     from vpr_nb.train import load_data
     with pytest.raises(ValueError, match="data.root"):
         load_data(resolve_config("dwt-pitts30k")["data"])
 
 
+# ------------------------------------------------------------------------------------------ presets
+PAPER_STEPS = {   # (sizes of the real data, expected optimiser steps of the paper's code)
+    "dwt-pitts30k": ({"num_queries": 7416}, 30 * math.ceil(7416 / 4)),                  # pytorch-NetVlad, bs 4
+    "salad-gsv": ({"num_places": 62_000}, 4 * math.ceil(62_000 / 60)),                   # SALAD: 4 x ceil(P/60)
+    "salad-cliquemining-msls": ({"num_extra_places": 62_000}, 4 * max(math.ceil(62_000 / 30), 2000)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_each_preset_builds_its_model_and_counts_its_steps(name, dinov2):
+    cfg = C.resolve(name)
+    C.validate(cfg, for_training=False)
+    torch.manual_seed(0)
+    model = C.build_checked(cfg)              # dummy batch at the training (and evaluation) size
+    assert model.out_dim >= 1
+    if name.startswith("salad"):
+        assert model.aggregator.num_channels == model.backbone.out_channels
+        assert cfg.train.scheduler == "linear" and cfg.train.linear_steps == 4000 and cfg.train.epochs == 4
+        assert cfg.eval.image_size == (322, 322) and cfg.data.image_size == (224, 224)
+        assert C.split_spec(C.resolve(name, ["data.root=/r", "data.val_root=/p", "data.test_root=/m"]).data,
+                            "val").format == "pitts"
+    if name in PAPER_STEPS:
+        sizes, steps = PAPER_STEPS[name]
+        assert C.optimizer_steps(cfg, **sizes) == steps
+        if name == "salad-gsv":
+            assert 3900 <= steps <= 4200       # why SALAD's LinearLR spans 4000 steps
+    else:
+        from vpr_nb.synthetic import make_dataset
+        ds = make_dataset(cfg.data.preset, cfg.data.seed, cfg.data.size, **cfg.data.overrides)
+        sizes = ({"num_queries": len(ds.train.q_images)} if cfg.source.kind == "triplet"
+                 else {"num_places": len(np.unique(ds.train.db_place))})
+        assert C.optimizer_steps(cfg, **sizes) >= cfg.train.epochs
+
+
+# ------------------------------------------------------------------------------------------ end to end on fixtures
+def _pitts_sets():
+    return ["--set", f"data.root={FIX / 'pitts'}", "--set", "data.image_size=[32,32]",
+            "--set", 'model.aggregator_kwargs={"num_clusters": 4}', "--set", "model.init_per_image=4",
+            "--set", "train.epochs=1", "--set", "source.num_candidates=5", "--set", "source.num_negatives=2",
+            "--set", "data.image_check_workers=1", "--no-progress"]
+
+
+def test_dwt_pitts30k_end_to_end_on_fixtures(tmp_path):
+    out = tmp_path / "dwt"
+    assert main(["--preset", "dwt-pitts30k", "--out", str(out)] + _pitts_sets()) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["optimizer_steps"] == 1 * math.ceil(3 / 4) and res["steps_per_epoch"] == 1
+    assert res["val"].startswith("pitts:val") and res["test_data"].startswith("pitts:test")
+    assert res["recall_convention"] == "all" and (out / "checkpoints" / "best.pt").is_file()
+    assert not (out / ".lock").exists()
+    # a second run into the same folder is refused; --resume continues it
+    assert main(["--preset", "dwt-pitts30k", "--out", str(out)] + _pitts_sets()) == 2
+    assert main(["--resume", "--out", str(out), "--no-progress"]) == 0
+    assert main(["--resume", "--preset", "dwt-pitts30k", "--set", "train.lr=1", "--out", str(out)]) == 2
+    (out / ".lock").write_text(f"{os.getppid()}\n")                 # a live process holds the folder
+    assert main(["--resume", "--out", str(out), "--no-progress"]) == 2
+    (out / ".lock").write_text("999999999\n")                      # a dead one: taken over
+    assert main(["--resume", "--out", str(out), "--no-progress"]) == 0
+    # pitts250k names
+    root = tmp_path / "p250"
+    shutil.copytree(FIX / "pitts", root)
+    for part in ("train", "val", "test"):
+        (root / "datasets" / f"pitts30k_{part}.mat").rename(root / "datasets" / f"pitts250k_{part}.mat")
+    cfg = C.resolve("dwt-pitts30k", [f"data.root={root}", "data.pitts_set=pitts250k", "data.image_size=[32,32]"])
+    assert C.load_split(cfg, "test").geo.extras["dataset"] == "pitts250k"
+
+
+def _salad_sets(tmp):
+    return ["--set", f"data.root={FIX / 'gsv_cities'}", "--set", f"data.val_root={FIX / 'pitts'}",
+            "--set", f"data.test_root={FIX / 'msls'}", "--set", "data.image_size=[28,28]",
+            "--set", "eval.image_size=[42,42]", "--set", "source.places_per_batch=2",
+            "--set", 'model.aggregator_kwargs={"num_clusters": 2, "cluster_dim": 4, "token_dim": 4, "hidden_dim": 8}',
+            "--set", "train.epochs=1", "--set", "data.image_check_workers=1", "--no-progress"]
+
+
+def test_salad_gsv_end_to_end_on_fixtures(tmp_path, dinov2):
+    if os.environ.get("VPR_NB_DINOV2_HUB"):
+        pytest.skip("the toy sizes below are for the stand-in")
+    out = tmp_path / "salad"
+    assert main(["--preset", "salad-gsv", "--out", str(out)] + _salad_sets(tmp_path)) == 0   # AMP on: bf16 on CPU
+    res = json.loads((out / "results.json").read_text())
+    assert res["steps_per_epoch"] == math.ceil(4 / 2) and res["optimizer_steps"] == 2
+    assert res["val"].startswith("pitts:val") and res["test_data"].startswith("msls:val")
+    assert res["recall_convention"] == "exclude"
+    hist = json.loads((out / "history.json").read_text())
+    assert len(hist["epochs"]) == 1 and np.isfinite(hist["epochs"][0]["loss"])
+
+
+def test_salad_cliquemining_end_to_end_and_unreadable_images(tmp_path, dinov2):
+    if os.environ.get("VPR_NB_DINOV2_HUB"):
+        pytest.skip("the toy sizes below are for the stand-in")
+    out = tmp_path / "cm"
+    sets = ["--set", f"data.root={FIX / 'msls'}", "--set", f"data.val_root={FIX / 'pitts'}",
+            "--set", f"data.gsv_root={FIX / 'gsv_cities'}", "--set", "data.image_size=[28,28]",
+            "--set", "eval.image_size=[42,42]", "--set", "source.places_per_batch=3",
+            "--set", 'model.aggregator_kwargs={"num_clusters": 2, "cluster_dim": 4, "token_dim": 4, "hidden_dim": 8}',
+            "--set", "train.epochs=1", "--set", "source.clique_places=1", "--set", "source.clique_batches_per_epoch=1",
+            "--set", "data.image_check_workers=1", "--no-progress"]
+    with pytest.warns(UserWarning, match="MSLS training cities are absent"):
+        assert main(["--preset", "salad-cliquemining-msls", "--out", str(out)] + sets) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["steps_per_epoch"] == max(math.ceil(4 / 2), 1) and res["unreadable_images"] == 1
+    assert res["test_data"].startswith("msls:val") and res["val"].startswith("pitts:val")
+    listed = (out / "unreadable_images.txt").read_text()
+    assert "london" in listed and "runcated" in listed
+    cfg = C.resolve("salad-cliquemining-msls", [s for s in sets if "=" in s] + ["data.check_images=fail"])
+    with pytest.raises(ValueError, match="cannot be decoded"):
+        C.load_split(cfg, "train")
+
+
+def test_val_equal_to_test_images_is_refused(tmp_path):
+    """gmberton's MSLS: images/test is a link to images/val."""
+    root = tmp_path / "msls_gm"
+    (root / "images").mkdir(parents=True)
+    shutil.copytree(FIX / "gmberton" / "pitts30k" / "images" / "test", root / "images" / "val")
+    shutil.copytree(FIX / "gmberton" / "pitts30k" / "images" / "test", root / "images" / "train")
+    (root / "images" / "test").symlink_to(root / "images" / "val")
+    cfg = C.resolve("synthetic-city-triplet", ["data.format=gmberton", f"data.root={root}", "data.image_size=[16,16]",
+                                               'model.backbone_kwargs={"width": 8, "out_channels": 16}'])
+    with pytest.raises(ValueError, match="validation and test are the same images"):
+        C.train_run(cfg, None, progress=False)
+
+
+# ------------------------------------------------------------------------------------------ evaluation
+def _checkpoint(tmp_path):
+    from vpr_nb.training import save_checkpoint
+    torch.manual_seed(0)
+    cfg = C.resolve("synthetic-city-triplet", ['model.backbone_kwargs={"width": 8, "out_channels": 16}'])
+    return cfg, save_checkpoint(tmp_path / "best.pt", {"model": C.build(cfg).state_dict()})
+
+
+def test_evaluate_needs_only_the_test_data(tmp_path, capsys):
+    cfg, ck = _checkpoint(tmp_path)
+    msls = C.with_overrides(cfg, ["data.format=msls", f"data.root={FIX / 'msls_val_only'}", "data.image_size=[16,16]"])
+    res = C.evaluate_run(msls, ck, tmp_path / "ev", grid_queries=0)
+    assert res["recall_convention"] == "exclude" and res["num_queries"] == 4 and res["test_data"].startswith("msls:val")
+    assert "Recall@N convention: exclude" in capsys.readouterr().out
+    gm = C.with_overrides(cfg, ["data.format=gmberton", f"data.root={FIX / 'gmberton' / 'pitts30k'}",
+                                "data.image_size=[16,16]"])
+    res = C.evaluate_run(gm, ck, None)
+    assert res["recall_convention"] == "all" and res["num_queries"] == 3 == res["num_queries_total"]
+    assert res["queries_without_positive"] == 1
+    ex = C.evaluate_run(C.with_overrides(gm, ["eval.recall=exclude"]), ck, None)
+    assert ex["num_queries"] == 2 and ex["recall"]["1"] == pytest.approx(res["recall"]["1"] * 3 / 2)
+    nord = C.with_overrides(cfg, ["data.format=nordland", f"data.root={FIX / 'nordland'}", "data.image_size=[16,16]",
+                                  "data.nordland_protocol=25m"])
+    res = C.evaluate_run(nord, ck, None)
+    assert res["data"]["nordland_protocol"] == "25m" and res["num_queries"] == 4
+
+
+def test_evaluate_a_run_and_another_dataset(tmp_path):
+    from vpr_nb.evaluate import main as evaluate_main
+    _run(SMALL[:-5] + ["--set", "train.epochs=1", "--no-progress"], tmp_path / "run")
+    assert evaluate_main(["--run", str(tmp_path / "run"), "--out", str(tmp_path / "ev"), "--predictions"]) == 0
+    rec = json.loads((tmp_path / "ev" / "recalls.json").read_text())
+    assert set(rec["recall"]) == {"1", "5", "10", "20"} and all(0 <= v <= 1 for v in rec["recall"].values())
+    rows = (tmp_path / "ev" / "predictions.csv").read_text().splitlines()
+    assert len(rows) == rec["num_queries_total"] + 1 and (tmp_path / "ev" / "retrieval_grid.png").stat().st_size > 0
+    root = FIX / "gmberton" / "pitts30k"
+    assert evaluate_main(["--run", str(tmp_path / "run"), "--out", str(tmp_path / "ev2"), "--set",
+                          "data.format=gmberton", "--set", f"data.root={root}", "--set", "data.image_size=[16,24]"]) == 0
+    rec2 = json.loads((tmp_path / "ev2" / "recalls.json").read_text())
+    assert rec2["num_queries"] == 3 and rec2["recall_convention"] == "all"
+    assert evaluate_main(["--run", str(tmp_path / "nowhere"), "--out", str(tmp_path / "ev3")]) == 2
+    # a pickled (not weights-only) checkpoint: a clear refusal
+    torch.save({"model": TinyViT()}, tmp_path / "pickled.pt")
+    assert evaluate_main(["--run", str(tmp_path / "run"), "--checkpoint", str(tmp_path / "pickled.pt"),
+                          "--out", str(tmp_path / "ev4")]) == 2
+
+
+# ------------------------------------------------------------------------------------------ samplers and resume
+def test_gsv_batches_one_city_and_every_place_once():
+    groups = np.repeat(np.arange(12), 4)
+    regions = np.where(groups < 7, "PRS", "OSL")
+    make = C.EpochPlaceBatches(groups, regions, 3, 4, num_batches=4, one_city=True)
+    batches = make(None, 0, np.random.default_rng(0))
+    assert batches.shape == (4, 3, 4)
+    for b in batches:
+        assert len(set(regions[b.reshape(-1)])) == 1 and len(set(groups[b.reshape(-1)])) == 3
+    mixed = C.EpochPlaceBatches(groups, regions, 3, 4, num_batches=4)(None, 0, np.random.default_rng(0))
+    assert sorted(set(groups[mixed[:, :, 0].reshape(-1)])) == list(range(12))          # each place once
+    with pytest.raises(ValueError, match="fewer than 8 places"):
+        C.EpochPlaceBatches(groups, regions, 8, 4, 1, one_city=True)
+
+
+@pytest.mark.parametrize("sampler", ["random", "clique"])
+def test_place_samplers_train(sampler):
+    from vpr_nb import seed_everything
+    from vpr_nb.models import build_model
+    from vpr_nb.synthetic import make_dataset
+    from vpr_nb.training import TrainConfig, train
+
+    ds = make_dataset("route", 0, num_frames=200, image_size=(16, 24))
+    cfg = C.resolve("synthetic-route-ms", [f"source.sampler={sampler}", "source.places_per_batch=4",
+                                           "source.batches_per_epoch=2"])
+    source, per_epoch = C.build_source(cfg, ds.train)
+    assert per_epoch == 2
+    batches = source.make_batches(None if sampler == "random" else build_model("small_cnn", "gem"), 0,
+                                  np.random.default_rng(0))
+    assert batches.shape == (2, 4, 4) and len(np.unique(batches[0])) == 16
+    seed_everything(0)
+    model = build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
+    hist = train(model, source, ds.val, TrainConfig(epochs=1, optimizer="adam", lr=1e-3), progress=False)
+    assert np.isfinite(hist.losses).all()
+    with pytest.raises(ValueError, match="gsv_root|GSV"):
+        C.build_source(C.with_overrides(cfg, ["source.sampler=clique+random"]), ds.train)
+
+
+def test_cliquemining_run_resumes_exactly(tmp_path):
+    from vpr_nb import seed_everything
+    from vpr_nb.models import build_model
+    from vpr_nb.synthetic import make_dataset
+    from vpr_nb.training import TrainConfig, train
+
+    ds = make_dataset("route", 0, num_frames=160, image_size=(16, 24))
+    cfg = C.resolve("synthetic-route-ms", ["source.sampler=clique", "source.places_per_batch=4",
+                                           "source.batches_per_epoch=2"])
+    tc = TrainConfig(epochs=2, optimizer="adam", lr=1e-3)
+
+    def fresh():
+        seed_everything(0)
+        return build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
+
+    full = fresh()
+    train(full, C.build_source(cfg, ds.train)[0], ds.val, tc, progress=False)
+    part = fresh()
+    train(part, C.build_source(cfg, ds.train)[0], ds.val, tc, checkpoint_dir=tmp_path, progress=False, stop_after=1)
+    resumed = fresh()                                     # a new process: fresh model and sampler
+    train(resumed, C.build_source(cfg, ds.train)[0], ds.val, tc, checkpoint_dir=tmp_path, progress=False)
+    assert all(torch.equal(a, b) for a, b in zip(full.state_dict().values(), resumed.state_dict().values()))
+
+
+# ------------------------------------------------------------------------------------------ synthetic runs, DDP
 def _run(args, tmp, nproc=1):
     env = dict(os.environ, OMP_NUM_THREADS="1")
     if nproc == 1:
@@ -70,18 +398,13 @@ def test_ddp_two_processes_match_one(tmp_path):
 
 def test_real_format_split_trains_and_evaluates():
     """A gmberton-format fixture goes through the same loop as the synthetic world (images read lazily)."""
-    from pathlib import Path
-
-    import numpy as np
-
     from vpr_nb import seed_everything
     from vpr_nb.datasets import ImageArray, TrainingSplit, load
     from vpr_nb.evaluation import compute_descriptors, evaluate_model
     from vpr_nb.models import build_model
     from vpr_nb.training import TrainConfig, TripletSource, train
 
-    root = Path(__file__).resolve().parents[1] / "data_fixtures" / "gmberton" / "pitts30k"
-    split = TrainingSplit(load(root, "gmberton", split="test"), (16, 16))
+    split = TrainingSplit(load(FIX / "gmberton" / "pitts30k", "gmberton", split="test"), (16, 16))
     assert isinstance(split.db_images, ImageArray) and split.db_images.shape[1:] == (16, 16, 3)
     assert split.db_images[[0, 1]].dtype == np.uint8 and split.db_images[0].shape == (16, 16, 3)
     seed_everything(0)
@@ -93,49 +416,3 @@ def test_real_format_split_trains_and_evaluates():
         assert len(hist.epochs) == 1 and set(evaluate_model(model, split, ns=(1, 2))) == {1, 2}
     with pytest.raises(ValueError, match="fixed size"):
         ImageArray(split.geo.db_paths, None)
-
-
-def test_evaluate_a_run_and_another_dataset(tmp_path):
-    from vpr_nb.evaluate import main as evaluate_main
-    _run(SMALL[:-5] + ["--set", "train.epochs=1", "--no-progress"], tmp_path / "run")
-    assert evaluate_main(["--run", str(tmp_path / "run"), "--out", str(tmp_path / "ev"), "--predictions"]) == 0
-    rec = json.loads((tmp_path / "ev" / "recalls.json").read_text())
-    assert set(rec["recall"]) == {"1", "5", "10", "20"} and all(0 <= v <= 1 for v in rec["recall"].values())
-    rows = (tmp_path / "ev" / "predictions.csv").read_text().splitlines()
-    assert len(rows) == rec["num_queries"] + 1 and (tmp_path / "ev" / "retrieval_grid.png").stat().st_size > 0
-    # the same weights on a real-format fixture (gmberton layout), test split only
-    from pathlib import Path
-    root = Path(__file__).resolve().parents[1] / "data_fixtures" / "gmberton" / "pitts30k"
-    with pytest.warns(UserWarning, match="no positive"):
-        assert evaluate_main(["--run", str(tmp_path / "run"), "--out", str(tmp_path / "ev2"), "--set",
-                              "data.format=gmberton", "--set", f"data.root={root}", "--set", "data.image_size=[16,24]"]) == 0
-    rec2 = json.loads((tmp_path / "ev2" / "recalls.json").read_text())
-    assert rec2["num_queries"] == 3
-    assert evaluate_main(["--run", str(tmp_path / "nowhere"), "--out", str(tmp_path / "ev3")]) == 2
-
-
-@pytest.mark.parametrize("sampler", ["random", "clique"])
-def test_place_samplers_train(sampler):
-    import numpy as np
-
-    from vpr_nb import seed_everything
-    from vpr_nb.models import build_model
-    from vpr_nb.synthetic import make_dataset
-    from vpr_nb.train import build_source
-    from vpr_nb.training import TrainConfig, train
-
-    ds = make_dataset("route", 0, num_frames=200, image_size=(16, 24))
-    src = dict(resolve_config("synthetic-route-ms")["source"], sampler=sampler, places_per_batch=4,
-               images_per_place=4, batches_per_epoch=2)
-    source = build_source(src, ds.train)
-    batches = source.make_batches(None if sampler == "random" else build_model("small_cnn", "gem"), 0,
-                                  np.random.default_rng(0))
-    assert batches.shape == (2, 4, 4) and len(np.unique(batches[0])) == 16
-    seed_everything(0)
-    model = build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
-    hist = train(model, source, ds.val, TrainConfig(epochs=1, optimizer="adam", lr=1e-3), progress=False)
-    assert np.isfinite(hist.losses).all()
-    with pytest.raises(ValueError, match="sampler"):
-        build_source(dict(src, sampler="nearest"), ds.train)
-    with pytest.raises(ValueError, match="gsv_root|GSV"):
-        build_source(dict(src, sampler="clique+random"), ds.train)

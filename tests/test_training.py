@@ -152,3 +152,51 @@ def test_place_batches_record_the_ms_collapsed_loss(world):
     same = torch.nn.functional.normalize(torch.ones(8, 16), dim=1)
     want = float(L.multi_similarity_loss(same, labels, 1.0, 50.0, 0.0))
     assert hist.epochs[0]["collapsed_loss"] == pytest.approx(want, rel=1e-5)
+
+
+def test_amp_trains_in_bfloat16_on_cpu(world):
+    from vpr_nb.training import amp_dtype
+    assert amp_dtype(torch.device("cpu")) == torch.bfloat16
+    model = _model()
+    src = TripletSource(world.train, "triplet", batch_size=8, num_negatives=3, num_candidates=50)
+    hist = train(model, src, world.val, TrainConfig(epochs=1, lr=0.05, amp=True, device="cpu"), progress=False)
+    assert np.isfinite(hist.losses).all() and all(p.dtype == torch.float32 for p in model.parameters())
+    for bad in ("False", 1):
+        with pytest.raises(ValueError, match="amp must be True or False"):
+            TrainConfig(amp=bad)
+    with pytest.raises(ValueError, match="restore_best must be True or False"):
+        TrainConfig(restore_best="no")
+
+
+def test_pickled_checkpoint_is_refused_with_a_clear_message(tmp_path):
+    torch.save({"model": torch.nn.Linear(2, 2)}, tmp_path / "pickled.pt")
+    with pytest.raises(ValueError, match="will not unpickle it"):
+        load_checkpoint(tmp_path / "pickled.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="junk.pt"):
+        load_checkpoint(tmp_path / "junk.pt")
+
+
+def test_place_batch_source_keeps_its_sampler_state(world):
+    class Sampler:
+        def __init__(self):
+            self.state = {"d": torch.zeros(2)}
+
+        def __call__(self, model, epoch, rng):
+            return random_place_batches(np.arange(4).repeat(4), 2, 2, num_batches=1, seed=0)
+
+        def state_dict(self):
+            return self.state
+
+        def load_state_dict(self, state):
+            self.state = state
+
+    s = Sampler()
+    src = PlaceBatchSource(world.train.db_images[:16], s)
+    assert src.state_dict() == {"sampler": s.state}
+    src.load_state_dict({"sampler": {"d": torch.ones(2)}})
+    assert torch.equal(s.state["d"], torch.ones(2))
+    plain = PlaceBatchSource(world.train.db_images[:16], lambda m, e, r: None)
+    assert plain.state_dict() == {}
+    with pytest.raises(ValueError, match="sampler state"):
+        plain.load_state_dict({"sampler": {}})

@@ -364,12 +364,24 @@ def _bools(values: Sequence[str], path, column: str) -> np.ndarray:
         raise ValueError(f"{path}: column {column!r} must be True/False, got {exc.args[0]!r}") from None
 
 
-def _list_images(folder: Path) -> list[Path]:
+def _list_images(folder: Path, suffixes: Sequence[str] | None = None) -> list[Path]:
+    """Image files under ``folder`` (recursive, sorted). ``suffixes=None``: any of IMAGE_SUFFIXES in any
+    case; otherwise exactly these (case-sensitive, as ``glob('**/*.jpg')``), other images are skipped
+    with a warning that counts them."""
     if not folder.is_dir():
         raise FileNotFoundError(f"image folder not found: {folder}")
-    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    every = [p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and not p.is_dir()]
+    if suffixes is None:
+        files = sorted(every)
+    else:
+        files = sorted(p for p in every if p.suffix in suffixes)
+        stray = len(every) - len(files)
+        if stray:
+            warnings.warn(f"{folder}: {stray} image file(s) not named *{'/*'.join(suffixes)} are ignored, "
+                          f"as the reference code does (e.g. {next(p.name for p in every if p.suffix not in suffixes)})",
+                          stacklevel=3)
     if not files:
-        raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) found under {folder}")
+        raise ValueError(f"no images ({', '.join(suffixes or IMAGE_SUFFIXES)}) found under {folder}")
     return files
 
 
@@ -542,7 +554,8 @@ def load_gmberton(root, *, split: str = "test", pos_radius: float = 25.0, train_
     """Load a dataset formatted by gmberton's VPR-datasets-downloader.
 
     ``root`` is ``datasets/<name>`` (holding ``images/<split>/``) or the split folder itself. Images
-    are found recursively and sorted (as the benchmark's ``sorted(glob('**/*.jpg'))``); UTM east and
+    are found recursively and sorted (as the benchmark's ``sorted(glob('**/*.jpg'))``: only lower-case
+    ``.jpg`` files count, stray ``.JPG``/``.png`` files are ignored with a warning); UTM east and
     north are fields 1 and 2 of the ``@``-split name. Positives within ``pos_radius`` (25 m,
     ``val_positive_dist_threshold``), training positives ``train_pos_radius`` (10 m).
     """
@@ -554,7 +567,7 @@ def load_gmberton(root, *, split: str = "test", pos_radius: float = 25.0, train_
     sdir = _gmberton_split_dir(root, split).resolve()
     sides = {}
     for side, folder in (("db", "database"), ("q", "queries")):
-        files = _list_images(sdir / folder)
+        files = _list_images(sdir / folder, suffixes=(".jpg",))   # datasets_ws.py: sorted(glob("**/*.jpg"))
         parsed = [parse_gmberton_name(f) for f in files]
         sides[side] = (files, parsed)
     extras: dict = {"split_dir": str(sdir)}
@@ -642,8 +655,10 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
 
     ``cities``: None (every city folder), ``"train"``/``"val"`` (the official lists of
     mapillary_sls ``msls.py``; val = cph, sf) or a list of names. Cities are concatenated in that order;
-    positives are searched inside each city (``db_region``/``q_region``). ``db_place``/``q_place`` are
-    the ``unique_cluster`` ids used by CliqueMining (-1 where empty). Headings are the compass angle
+    positives are searched inside each city (``db_region``/``q_region``). ``unique_cluster`` restarts
+    in every city, so a place is the pair (city, ``unique_cluster``): ``db_place``/``q_place`` number
+    these pairs globally (-1 where the cluster is empty) and the raw ids are kept in
+    ``extras["db_cluster"|"q_cluster"]``. Headings are the compass angle
     ``ca``. Defaults follow the official code: panoramas excluded, positives 25 m (``evaluate.py``
     threshold), training positives 10 m (``posDistThr``).
 
@@ -709,7 +724,18 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
         if len(got) < len(wanted):
             warnings.warn(f"{query_keys}: {len(wanted) - len(got)} listed key(s) are not queries of {cities}",
                           stacklevel=3)
+    # unique_cluster restarts in every city: a place is the pair (city, cluster), numbered globally
+    db_cl, q_cl = cat(db_parts, "place"), cat(q_parts, "place")
+    db_reg, q_reg = cat(db_parts, "region"), cat(q_parts, "region")
+    cl_all, reg_all = np.concatenate([db_cl, q_cl]), np.concatenate([db_reg, q_reg])
+    place_all = np.full(len(cl_all), -1, dtype=np.int64)
+    has = cl_all >= 0
+    if has.any():
+        pair = np.char.add(np.char.add(reg_all[has].astype(str), ":"), cl_all[has].astype(str))
+        place_all[has] = np.unique(pair, return_inverse=True)[1].reshape(-1)
+    db_place, q_place = place_all[:len(db_cl)], place_all[len(db_cl):]
     extras = {"cities": cities, "db_key": cat(db_parts, "keys"), "q_key": cat(q_parts, "keys"),
+              "db_cluster": db_cl, "q_cluster": q_cl,
               "db_night": cat(db_parts, "night"), "q_night": cat(q_parts, "night"),
               "db_view_direction": cat(db_parts, "view"), "q_view_direction": cat(q_parts, "view"),
               "val_subset": val_subset, "exclude_panos": exclude_panos}
@@ -717,9 +743,8 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
     out = GeoSplit(name=name, format="msls", db_paths=cat(db_parts, "paths"), q_paths=cat(q_parts, "paths"),
                    db_utm=cat(db_parts, "utm"), q_utm=cat(q_parts, "utm"), pos_radius=pos_radius,
                    train_pos_radius=train_pos_radius, db_heading=cat(db_parts, "heading"),
-                   q_heading=cat(q_parts, "heading"), db_place=cat(db_parts, "place"),
-                   q_place=cat(q_parts, "place"), db_region=cat(db_parts, "region"),
-                   q_region=cat(q_parts, "region"), extras=extras)
+                   q_heading=cat(q_parts, "heading"), db_place=db_place, q_place=q_place,
+                   db_region=db_reg, q_region=q_reg, extras=extras)
     if check_files:
         out.check_files()
     return out
@@ -827,7 +852,7 @@ def _frame_of(path: Path) -> int:
     return int(nums[-1])
 
 
-def load_nordland(root, *, protocol: str = "1frame", db_folder: str | None = None, q_folder: str | None = None,
+def load_nordland(root, *, protocol: str = "auto", db_folder: str | None = None, q_folder: str | None = None,
                   query_frame_step: int | None = None, check_files: bool = True) -> GeoSplit:
     """Load Nordland with frame-index ground truth.
 
@@ -836,9 +861,11 @@ def load_nordland(root, *, protocol: str = "1frame", db_folder: str | None = Non
     (``images/test/{database,queries}`` with the frame number in name field 7, step 1); other folders
     with ``db_folder=``/``q_folder=`` (frame = last integer of the file stem).
 
-    Protocols (a query's positives are the database frames f with ``|f - f_q| <= T``):
+    Protocols (a query's positives are the database frames f with ``|f - f_q| <= T``); ``"auto"``
+    (default) is the protocol of the layout: ``"1frame"`` for ``ref/``+``query/`` and custom folders,
+    ``"25m"`` for gmberton's folder (whose dummy UTM spacing encodes +-10 frames):
 
-    - ``"1frame"`` (default), T = 1: the GSV-Cities ``Nordland_gt.npy`` / SALAD / CliqueMining
+    - ``"1frame"``, T = 1: the GSV-Cities ``Nordland_gt.npy`` / SALAD / CliqueMining
       convention (refs 10i-1, 10i, 10i+1 for query i);
     - ``"25m"``, T = 10: gmberton's download_nordland.py (25 m = +-10 frames), as in the papers that
       report Nordland "within 25 m".
@@ -849,18 +876,20 @@ def load_nordland(root, *, protocol: str = "1frame", db_folder: str | None = Non
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"Nordland folder not found: {root}")
-    if protocol not in NORDLAND_PROTOCOLS:
-        raise ValueError(f"protocol must be one of {sorted(NORDLAND_PROTOCOLS)}, got {protocol!r}")
+    if protocol != "auto" and protocol not in NORDLAND_PROTOCOLS:
+        raise ValueError(f"protocol must be 'auto' or one of {sorted(NORDLAND_PROTOCOLS)}, got {protocol!r}")
     if (db_folder is None) != (q_folder is None):
         raise ValueError("pass both db_folder and q_folder, or neither")
     if db_folder is None:
         if (root / "ref").is_dir() and (root / "query").is_dir():
-            db_folder, q_folder, step = "ref", "query", 10
+            db_folder, q_folder, step, auto = "ref", "query", 10, "1frame"
         else:
             sdir = _gmberton_split_dir(root, "test")
-            db_folder, q_folder, step = str(sdir / "database"), str(sdir / "queries"), 1
+            db_folder, q_folder, step, auto = str(sdir / "database"), str(sdir / "queries"), 1, "25m"
     else:
-        step = 1
+        step, auto = 1, "1frame"
+    if protocol == "auto":
+        protocol = auto
     if query_frame_step is not None:
         step = check_int(query_frame_step, "query_frame_step", minimum=1)
     frames_tol = NORDLAND_PROTOCOLS[protocol]
@@ -955,11 +984,89 @@ class ImageArray:
         return out
 
 
+# Recall@N convention per format for queries without any positive within the radius:
+# "all" divides by every query (pytorch-NetVlad, gmberton's benchmark / VPR-methods-evaluation, GSV-Cities'
+# validation, VPR-Bench Nordland), "exclude" leaves them out (mapillary_sls evaluate.py; the notebooks).
+RECALL_CONVENTIONS = ("all", "exclude")
+FORMAT_RECALL = {"pitts": "all", "gmberton": "all", "gsv-cities": "all", "nordland": "all", "msls": "exclude",
+                 "synthetic": "exclude"}
+
+
+def recall_convention(format: str) -> str:
+    """The Recall@N convention of a dataset format (see :data:`FORMAT_RECALL`)."""
+    if format not in FORMAT_RECALL:
+        raise ValueError(f"unknown dataset format {format!r}; choose one of {sorted(FORMAT_RECALL)}")
+    return FORMAT_RECALL[format]
+
+
+def _decode_error(path: str) -> str | None:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            if im.format == "JPEG":      # decode at 1/8 scale: every byte is still read, so truncation shows
+                im.draft("RGB", (max(1, im.width // 8), max(1, im.height // 8)))
+            im.load()
+    except Exception as exc:  # noqa: BLE001 - any decoder error makes the file unusable
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def find_unreadable_images(paths: Sequence, num_workers: int = 4) -> list[tuple[str, str]]:
+    """``(path, error)`` of every image in ``paths`` that Pillow cannot fully decode (truncated or corrupt
+    files, missing files), in the order given. JPEGs are decoded in draft mode (1/8 scale), which still
+    reads the whole stream, so this costs a fraction of a full read."""
+    if isinstance(paths, (str, os.PathLike)):
+        raise ValueError("paths must be a sequence of image paths, not a single path")
+    num_workers = check_int(num_workers, "num_workers")
+    paths = [str(p) for p in paths]
+    if num_workers == 1 or len(paths) < 64:
+        errors = [_decode_error(p) for p in paths]
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(num_workers) as pool:
+            errors = list(pool.map(_decode_error, paths, chunksize=256))
+    return [(p, e) for p, e in zip(paths, errors) if e is not None]
+
+
+def drop_images(split: GeoSplit, bad) -> GeoSplit:
+    """A copy of ``split`` without the images whose path is in ``bad`` (per-image arrays and the
+    ``extras`` arrays of matching length are filtered alike)."""
+    if not isinstance(split, GeoSplit):
+        raise ValueError(f"split must be a GeoSplit, got {type(split).__name__}")
+    bad = {str(p) for p in bad}
+    keep = {side: np.array([p not in bad for p in getattr(split, f"{side}_paths")], dtype=bool)
+            for side in ("db", "q")}
+    if keep["db"].all() and keep["q"].all():
+        return split
+    kw = {}
+    for side in ("db", "q"):
+        k = keep[side]
+        kw[f"{side}_paths"] = [p for p, ok in zip(getattr(split, f"{side}_paths"), k) if ok]
+        kw[f"{side}_utm"] = split.__dict__[f"{side}_utm"][k]
+        for extra in ("heading", "place", "region"):
+            v = getattr(split, f"{side}_{extra}")
+            kw[f"{side}_{extra}"] = None if v is None else np.asarray(v)[k]
+    extras = {}
+    for key, v in split.extras.items():
+        side = key.split("_", 1)[0]
+        if side in keep and isinstance(v, np.ndarray) and len(v) == len(keep[side]):
+            v = v[keep[side]]
+        elif side in keep and isinstance(v, list) and len(v) == len(keep[side]):
+            v = [x for x, ok in zip(v, keep[side]) if ok]
+        extras[key] = v
+    if not kw["db_paths"]:
+        raise ValueError(f"{split.name}: every database image is unreadable")
+    return GeoSplit(name=split.name, format=split.format, pos_radius=split.pos_radius,
+                    train_pos_radius=split.train_pos_radius, extras=extras, **kw)
+
+
 @dataclass
 class TrainingSplit:
     """A :class:`GeoSplit` seen through the attributes of the synthetic ``VPRDataset`` splits
     (``db_images``/``q_images`` as lazy :class:`ImageArray`, ``db_utm``, ``pos_radius``, ...), so
-    :class:`vpr_nb.training.TripletSource` and :func:`vpr_nb.evaluation.evaluate_model` accept it."""
+    :class:`vpr_nb.training.TripletSource` and :func:`vpr_nb.evaluation.evaluate_model` accept it.
+    ``recall_convention`` is the format's (:func:`recall_convention`)."""
 
     geo: GeoSplit
     image_size: tuple[int, int]
@@ -971,51 +1078,12 @@ class TrainingSplit:
         self.db_utm, self.q_utm = g.db_utm, g.q_utm
         self.db_heading, self.q_heading = g.db_heading, g.q_heading
         self.db_place, self.q_place = g.db_place, g.q_place
+        self.db_region, self.q_region = g.db_region, g.q_region
         self.pos_radius = g.pos_radius if g.pos_radius is not None else 25.0
         self.train_pos_radius = g.train_pos_radius if g.train_pos_radius is not None else 10.0
+        self.recall_convention = recall_convention(g.format)
+        self.name = g.name
 
 
-# per-format location of the three splits under ``data.root``
-_SPLIT_FILES = {"pitts": {"train": "datasets/pitts30k_train.mat", "val": "datasets/pitts30k_val.mat",
-                          "test": "datasets/pitts30k_test.mat"}}
-
-
-def load_splits(data: dict, splits: Sequence[str] = ("train", "val", "test")):
-    """(train, val, test) :class:`TrainingSplit` s for a ``data`` section of ``python -m vpr_nb.train``.
-
-    ``pitts``: ``root`` is the Pittsburgh folder holding ``datasets/pitts30k_{train,val,test}.mat``;
-    ``gmberton``: ``root`` holds ``images/{train,val,test}``; ``msls``: ``root`` holds ``train_val``
-    (train cities for training, the official val subset for val and test); ``gsv-cities``: training
-    places only, validated and tested on ``data.val_root`` (an MSLS folder). ``image_size`` is (H, W).
-    Splits not named in ``splits`` are not loaded and come back as ``None``.
-    """
-    bad = [s for s in splits if s not in ("train", "val", "test")]
-    if bad:
-        raise ValueError(f"splits must be among train, val, test; got {bad}")
-    fmt, root = data.get("format"), data.get("root")
-    if not root:
-        raise ValueError(f"data.root is required for format {fmt!r}")
-    root = Path(root)
-    size = tuple(data.get("image_size") or (480, 640))
-    check = data.get("check_files", True)
-    if fmt == "pitts":
-        parts = [load(root / _SPLIT_FILES["pitts"][s], "pitts", check_files=check) if s in splits else None
-                 for s in ("train", "val", "test")]
-    elif fmt == "gmberton":
-        parts = [load(root, "gmberton", split=s, check_files=check) if s in splits else None
-                 for s in ("train", "val", "test")]
-    elif fmt == "msls":
-        val = load(root, "msls", cities="val", val_subset="official", check_files=check)
-        parts = [load(root, "msls", cities="train", check_files=check), val, val]
-    elif fmt == "gsv-cities":
-        if not data.get("val_root"):
-            raise ValueError("gsv-cities is a training set only: set data.val_root to an MSLS folder for val/test")
-        val = load(data["val_root"], "msls", cities="val", val_subset="official", check_files=check)
-        parts = [load(root, "gsv-cities", check_files=check), val, val]
-    elif fmt == "nordland":
-        nord = load(root, "nordland", check_files=check)
-        parts = [nord, nord, nord]
-    else:
-        raise ValueError(f"unknown data.format {fmt!r}; choose pitts, gmberton, msls, gsv-cities or nordland")
-    return tuple(TrainingSplit(p, size) if p is not None and name in splits else None
-                 for name, p in zip(("train", "val", "test"), parts))
+__all__ += ["ImageArray", "TrainingSplit", "RECALL_CONVENTIONS", "FORMAT_RECALL", "recall_convention",
+            "find_unreadable_images", "drop_images"]

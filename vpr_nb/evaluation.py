@@ -8,8 +8,9 @@ Protocol (as in NetVLAD, gsv-cities, SALAD and CliqueMining evaluation code):
    (25 m for Pittsburgh and MSLS);
 4. Recall@N is the fraction of queries for which at least one of the first N retrievals is a positive.
 
-Queries that have no positive at all are excluded from Recall@N and a warning says how many
-(the MSLS convention; Pittsburgh has none).
+By default queries that have no positive at all are excluded from Recall@N and a warning says how
+many (the MSLS convention); ``no_positive="all"`` counts them as misses over all queries (the
+convention of pytorch-NetVlad, gmberton's benchmark and GSV-Cities; ``vpr_nb.datasets.FORMAT_RECALL``).
 """
 from __future__ import annotations
 
@@ -69,13 +70,18 @@ def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
     return dist, idx.astype(np.int64)
 
 
-def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[int] = (1, 5, 10, 20)) -> dict[int, float]:
+def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[int] = (1, 5, 10, 20),
+                no_positive: str = "exclude") -> dict[int, float]:
     """Recall@N for each N in ``ns``: a query counts at N if any of its first N predictions is a positive.
 
     ``predictions`` is the (num_queries, k) index array from :func:`retrieve`; ``positives`` the list
-    from :func:`positives_within`. Queries without any positive are excluded (with a warning).
-    Returns ``{N: recall}`` with recall in [0, 1].
+    from :func:`positives_within`. Queries without any positive are, with ``no_positive="exclude"``
+    (default, the MSLS convention), left out with a warning; with ``no_positive="all"`` they count as
+    misses and the denominator is every query (pytorch-NetVlad, gmberton's benchmark, GSV-Cities).
+    :func:`counted_queries` gives the denominator. Returns ``{N: recall}`` with recall in [0, 1].
     """
+    if no_positive not in ("exclude", "all"):
+        raise ValueError(f"no_positive must be 'exclude' or 'all', got {no_positive!r}")
     pred = np.asarray(predictions)
     if pred.ndim != 2 or not np.issubdtype(pred.dtype, np.integer):
         raise ValueError(f"predictions must be a 2-D integer array (num_queries, k), got shape "
@@ -92,7 +98,7 @@ def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[in
     has_pos = np.array([len(p) > 0 for p in positives])
     if not has_pos.any():
         raise ValueError("no query has a positive: check the radius and that database and queries overlap")
-    if not has_pos.all():
+    if not has_pos.all() and no_positive == "exclude":
         warnings.warn(f"{int((~has_pos).sum())} of {len(positives)} queries have no positive within the "
                       f"radius and are excluded from Recall@N", stacklevel=2)
     # Vectorised membership test: encode (query, db index) pairs as one int64 key each.
@@ -103,8 +109,17 @@ def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[in
     pred_keys = np.arange(pred.shape[0], dtype=np.int64)[:, None] * width + pred
     hits = np.isin(pred_keys, pos_keys) & (pred >= 0)
     # first rank at which a positive appears (k if none)
-    first = np.where(hits.any(axis=1), hits.argmax(axis=1), pred.shape[1])[has_pos]
+    first = np.where(hits.any(axis=1), hits.argmax(axis=1), pred.shape[1])
+    if no_positive == "exclude":
+        first = first[has_pos]
     return {n: float(np.mean(first < n)) for n in ns}
+
+
+def counted_queries(positives: Sequence[Iterable[int]], no_positive: str = "exclude") -> int:
+    """The number of queries :func:`recall_at_n` divides by under the convention ``no_positive``."""
+    if no_positive not in ("exclude", "all"):
+        raise ValueError(f"no_positive must be 'exclude' or 'all', got {no_positive!r}")
+    return len(positives) if no_positive == "all" else sum(1 for p in positives if len(p) > 0)
 
 
 def images_to_tensor(images) -> torch.Tensor:
@@ -168,18 +183,19 @@ def raw_pixel_descriptors(images) -> np.ndarray:
 
 
 def evaluate_descriptors(db_desc, q_desc, db_utm, q_utm, radius: float,
-                         ns: Sequence[int] = (1, 5, 10, 20)) -> dict[int, float]:
-    """Positives + retrieval + Recall@N in one call (what every notebook reports)."""
+                         ns: Sequence[int] = (1, 5, 10, 20), no_positive: str = "exclude") -> dict[int, float]:
+    """Positives + retrieval + Recall@N in one call (what every notebook reports); ``no_positive`` as in
+    :func:`recall_at_n`."""
     db = as_float_matrix(db_desc, "db_desc")
     k = min(max(ns), db.shape[0])
     _, idx = retrieve(db, q_desc, k)
     pos = positives_within(db_utm, q_utm, radius)
-    return recall_at_n(idx, pos, [n for n in ns if n <= k])
+    return recall_at_n(idx, pos, [n for n in ns if n <= k], no_positive=no_positive)
 
 
 def evaluate_model(model: torch.nn.Module, split, ns: Sequence[int] = (1, 5, 10, 20),
-                   batch_size: int = 256) -> dict[int, float]:
+                   batch_size: int = 256, no_positive: str = "exclude") -> dict[int, float]:
     """Recall@N of ``model`` on a dataset split (an object with db/q images, UTM and ``pos_radius``)."""
     db = compute_descriptors(model, split.db_images, batch_size)
     q = compute_descriptors(model, split.q_images, batch_size)
-    return evaluate_descriptors(db, q, split.db_utm, split.q_utm, split.pos_radius, ns)
+    return evaluate_descriptors(db, q, split.db_utm, split.q_utm, split.pos_radius, ns, no_positive)

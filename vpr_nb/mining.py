@@ -372,6 +372,18 @@ class CliqueBatchMaker:
         self.group_descriptors: np.ndarray | None = None
         self.refreshed_at: list[int] = []
 
+    def state_dict(self) -> dict:
+        """The group descriptors in use and the refresh epochs (for exact resume from a checkpoint)."""
+        import torch
+        d = self.group_descriptors
+        return {"group_descriptors": None if d is None else torch.from_numpy(d.copy()),
+                "refreshed_at": [int(e) for e in self.refreshed_at]}
+
+    def load_state_dict(self, state: dict) -> None:
+        d = state.get("group_descriptors")
+        self.group_descriptors = None if d is None else np.asarray(d, dtype=np.float32).copy()
+        self.refreshed_at = [int(e) for e in state.get("refreshed_at", [])]
+
     def __call__(self, model, epoch: int, rng: np.random.Generator) -> np.ndarray:
         from vpr_nb.evaluation import compute_descriptors
 

@@ -58,7 +58,7 @@ class TrainConfig:
     ns: tuple[int, ...] = (1, 5, 10)
     restore_best: bool = True        # end with the best-on-validation weights
     device: str = "auto"             # "auto" (cuda if available), "cpu", "cuda", "cuda:1", ...
-    amp: bool = False                # bfloat16/float16 autocast on CUDA (ignored on CPU)
+    amp: bool = False                # autocast: bfloat16 on CPU / bf16-capable GPUs, else float16 + GradScaler
 
     def __post_init__(self):
         self.epochs = check_int(self.epochs, "epochs")
@@ -76,6 +76,9 @@ class TrainConfig:
         if not isinstance(self.device, str) or not (self.device in ("auto", "cpu") or self.device.startswith("cuda")):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:N]', got {self.device!r}")
         self.seed = check_int(self.seed, "seed", minimum=0)
+        for name in ("restore_best", "amp"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         self.ns = tuple(check_int(n, "ns entry") for n in self.ns)
         if not self.ns:
             raise ValueError("ns must list at least one N for Recall@N, e.g. (1, 5, 10)")
@@ -278,10 +281,18 @@ class PlaceBatchSource:
         self.epoch = 0
 
     def state_dict(self) -> dict:
-        return {}
+        """The sampler's state when ``make_batches`` has one (e.g. CliqueMining's group descriptors), so
+        that a resumed run draws the same batches as an uninterrupted one."""
+        sd = getattr(self.make_batches, "state_dict", None)
+        return {"sampler": sd()} if callable(sd) else {}
 
     def load_state_dict(self, state: dict) -> None:
-        pass
+        if "sampler" in state:
+            load = getattr(self.make_batches, "load_state_dict", None)
+            if not callable(load):
+                raise ValueError("the checkpoint holds a sampler state but this make_batches has no "
+                                 "load_state_dict; resume with the same source.sampler")
+            load(state["sampler"])
 
     def steps(self, model, rng: np.random.Generator, shard: tuple[int, int] = (0, 1), device=None):
         """One MS loss per batch; with ``shard=(rank, world)`` each process takes every world-th place."""
@@ -324,10 +335,31 @@ def save_checkpoint(path, state: dict) -> Path:
 
 def load_checkpoint(path) -> dict:
     """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: tensors and plain data only)."""
+    import pickle
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}; train first or check the path")
-    return torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise ValueError(
+            f"{path} is not a checkpoint of plain tensors and containers (as vpr_nb writes): it holds pickled "
+            f"Python objects ({first[:160]}). vpr_nb reads checkpoints with weights_only=True and will not "
+            f"unpickle it, since unpickling can run arbitrary code. Save only the state dict, e.g. "
+            f"torch.save({{'model': model.state_dict()}}, path), from code you trust.") from None
+    except (RuntimeError, EOFError) as exc:
+        raise ValueError(f"{path} is not a readable torch checkpoint ({str(exc)[:160]}); "
+                         f"is the file truncated or of another format?") from None
+
+
+def amp_dtype(device: torch.device) -> torch.dtype:
+    """The autocast dtype of ``TrainConfig.amp``: bfloat16 on CPU and on GPUs that support it, else float16
+    (then :func:`train` scales the loss with a ``GradScaler`` so that small gradients do not underflow)."""
+    if device.type == "cuda" and not torch.cuda.is_bf16_supported():
+        return torch.float16
+    return torch.bfloat16
 
 
 def _optimizer(model, cfg: TrainConfig):
@@ -409,7 +441,11 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
         # find_unused_parameters: e.g. SmallCNN's global-token layer is unused by pooling aggregators
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
                                                         find_unused_parameters=True)
-    amp = cfg.amp and device.type == "cuda"
+    amp = bool(cfg.amp)
+    dtype = amp_dtype(device) if amp else None
+    scaler = torch.amp.GradScaler(device.type) if amp and dtype == torch.float16 else None
+    if scaler is not None and ckdir is not None and resume and start > 0 and "scaler" in ck:
+        scaler.load_state_dict(ck["scaler"])
     end = cfg.epochs if stop_after is None else min(cfg.epochs, start + check_int(stop_after, "stop_after"))
     bar = tqdm(range(start, end), desc="epochs", disable=not progress or rank != 0, leave=False)
     for epoch in bar:
@@ -421,13 +457,18 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
         model.train()
         total, collapsed, steps = 0.0, 0.0, 0
         lr = opt.param_groups[0]["lr"]
-        with torch.autocast(device.type, enabled=amp):
+        with torch.autocast(device.type, dtype=dtype, enabled=amp):
             for loss in source.steps(net, rng, shard=(rank, world), device=device):
                 if not torch.isfinite(loss):
                     raise ValueError(f"the loss became {loss.item()} at epoch {epoch}; lower the learning rate")
                 opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
+                if scaler is not None:          # float16: scale the loss, unscale before the step
+                    scaler.scale(loss).backward()
+                    scaler.step(opt)
+                    scaler.update()
+                else:
+                    loss.backward()
+                    opt.step()
                 if cfg.scheduler == "linear":
                     sched.step()
                 logged = loss.detach()
@@ -455,7 +496,8 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
             save_checkpoint(ckdir / "last.pt", {
                 "model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                 "source": source.state_dict(), "history": history.to_dict(), "epoch": epoch,
-                "best_model": best_state, "config": asdict(cfg)})
+                "best_model": best_state, "config": asdict(cfg),
+                **({"scaler": scaler.state_dict()} if scaler is not None else {})})
         bar.set_postfix(loss=f"{total / max(steps, 1):.3f}", R1=f"{val[cfg.ns[0]]:.3f}")
     if cfg.restore_best and history.best_epoch >= 0 and end == cfg.epochs:
         model.load_state_dict(best_state)
