@@ -69,7 +69,10 @@ def test_every_preset_resolves_and_prints(capsys):
 
 
 def test_presets_hold_only_deviations_from_the_defaults():
-    for name, preset in PRESETS.items():
+    assert set(C.PRESETS) == set(PRESETS)
+    for name in PRESETS:               # vpr_nb.train.PRESETS: the resolved view
+        assert {"preset": name, **PRESETS[name]} == resolve_config(name)
+    for name, preset in C.PRESETS.items():
         assert set(preset) <= set(C.SECTIONS), name
         for section, values in preset.items():
             default = asdict(C.SECTIONS[section]())

@@ -26,7 +26,13 @@ from pathlib import Path
 
 import torch
 
-from .config import PRESETS, OutputFolder, RunConfig, resolve, train_run
+from .config import PRESETS as PRESET_DEVIATIONS
+from .config import OutputFolder, RunConfig, resolve, train_run
+
+# every preset resolved (all fields, for reading and printing); the presets themselves, which hold only
+# their deviations from the defaults, are vpr_nb.config.PRESETS
+PRESETS: dict[str, dict] = {name: {k: v for k, v in resolve(name).to_dict().items() if k != "preset"}
+                            for name in PRESET_DEVIATIONS}
 
 
 def resolve_config(preset: str, overrides=()) -> dict:
