@@ -129,6 +129,10 @@ def test_the_whole_config_is_validated_before_any_data(tmp_path, capsys):
     out = tmp_path / "never"
     assert main(["--preset", "salad-gsv", "--out", str(out), "--no-progress"]) == 2
     assert "data.root" in capsys.readouterr().err and not out.exists()
+    out2 = tmp_path / "never2"       # a model that cannot run on the images: refused before anything is written
+    assert main(["--preset", "dwt-pitts30k", "--set", f"data.root={FIX / 'pitts'}", "--set", "data.image_size=[8,8]",
+                 "--out", str(out2), "--no-progress"]) == 2
+    assert "does not run on 8x8" in capsys.readouterr().err and not out2.exists()
     with pytest.raises(ValueError, match="Nordland is a test set"):
         C.validate(C.resolve("synthetic-city-triplet", ["data.format=nordland", "data.root=/x"]))
     with pytest.raises(ValueError, match="no queries"):

@@ -567,8 +567,9 @@ def check_model(model, sizes) -> int:
         for h, w in sizes:
             try:
                 out = model(torch.zeros(1, 3, int(h), int(w), device=dev))
-            except ValueError as exc:
-                raise ValueError(f"the model does not run on {h}x{w} images: {exc}") from None
+            except (ValueError, RuntimeError) as exc:
+                raise ValueError(f"the model does not run on {h}x{w} images ({str(exc)[:300]}); "
+                                 "check data.image_size / eval.image_size and the model section") from None
             if out.ndim != 2 or out.shape[0] != 1 or not torch.isfinite(out).all():
                 raise ValueError(f"the model gives {tuple(out.shape)} non-finite/odd descriptors on {h}x{w} images")
     finally:
@@ -914,10 +915,12 @@ class OutputFolder:
         self.held = False
 
 
-def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool = True) -> dict:
+def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool = True,
+              folder: "OutputFolder | None" = None) -> dict:
     """Validate ``cfg`` and build its model (before any data is read), then load the data, train, select
-    on the validation split, and test. With ``out``: ``config.json``, ``history.json``, ``results.json``,
-    ``checkpoints/`` and ``unreadable_images.txt`` (images left out) are written there."""
+    on the validation split, and test. With ``out``: ``history.json``, ``results.json``, ``checkpoints/``
+    and ``unreadable_images.txt`` (images left out) are written there; with ``folder`` (the CLI's
+    :class:`OutputFolder`) the folder is locked and ``config.json`` written once the model is built."""
     from . import seed_everything
     from .evaluation import evaluate_model
     from .training import train
@@ -929,6 +932,9 @@ def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool 
     rank = torch.distributed.get_rank() if torch.distributed.is_available() and torch.distributed.is_initialized() else 0
     seed_everything(cfg.train.seed)
     model = build_checked(cfg)             # the model is built and run before any data loads
+    if folder is not None and rank == 0:
+        folder.acquire()
+        (folder.path / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
     synthetic = None
     if cfg.data.format == "synthetic":
         from .synthetic import make_dataset

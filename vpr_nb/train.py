@@ -108,10 +108,7 @@ def main(argv=None) -> int:
         torch.distributed.init_process_group(backend)
     rank = torch.distributed.get_rank() if distributed else 0
     try:
-        if folder is not None and rank == 0:
-            folder.acquire()
-            (args.out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
-        results = train_run(cfg, args.out, resume=args.resume, progress=not args.no_progress)
+        results = train_run(cfg, args.out, resume=args.resume, progress=not args.no_progress, folder=folder)
     except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
