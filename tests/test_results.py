@@ -43,6 +43,27 @@ def test_every_committed_result_belongs_to_a_notebook_that_loads_it():
             f"{nb.name} never calls results.load('{path.stem}', ...)"
 
 
+def test_load_refuses_results_of_other_backbone_weights(tmp_path):
+    path = results.save("99_demo", {"epochs": 1}, {"x": 1}, results_dir=tmp_path)
+    assert results.load("99_demo", {"epochs": 1}, results_dir=tmp_path)["course_backbone"] == results.backbone_fingerprint()
+    doc = json.loads(path.read_text())
+    doc["course_backbone"] = "0" * 64
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="other course-backbone weights"):
+        results.load("99_demo", {"epochs": 1}, results_dir=tmp_path)
+
+
+def test_backbone_fingerprint_follows_tensors_not_file_bytes(tmp_path):
+    import torch
+    from vpr_nb.pretrain import CHECKPOINT
+    state = torch.load(CHECKPOINT, weights_only=True)
+    torch.save(state, tmp_path / "other_name.pt")                 # other archive name: other bytes, same tensors
+    assert results.backbone_fingerprint(tmp_path / "other_name.pt") == results.backbone_fingerprint()
+    state[next(iter(state))].view(-1)[0] += 1
+    torch.save(state, tmp_path / "changed.pt")
+    assert results.backbone_fingerprint(tmp_path / "changed.pt") != results.backbone_fingerprint()
+
+
 def test_mean_std_and_paired_verdict():
     m, sd = results.mean_std([1.0, 2.0, 3.0])
     assert m == 2.0 and math.isclose(sd, 1.0)

@@ -6,7 +6,8 @@ runs with ``PROFILE = "reproduce"`` (``make reproduce``) it calls :func:`save`, 
 ``notebooks/results/<name>.json`` stamped with the git commit, date, library versions and the
 notebook's experiment config; in every profile it then calls :func:`load` with the config its code
 has *now*, and shows the committed table. :func:`load` refuses a file whose config differs from the
-notebook's (a changed epoch count, lr, seed list, …), so nbval fails and a result can never go stale
+notebook's (a changed epoch count, lr, seed list, …), and a file computed with other
+course-backbone weights (compared by :func:`backbone_fingerprint`), so nbval fails and a result can never go stale
 silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "reproduce"``) and commit.
 """
 from __future__ import annotations
@@ -26,6 +27,24 @@ def _canonical(value):
     return json.loads(json.dumps(_jsonable(value)))
 
 
+def backbone_fingerprint(path=None) -> str:
+    """sha256 of the course backbone's *tensors* (names, dtypes, shapes, values), not of the file's bytes,
+    so results are tied to the weights they were computed with."""
+    import hashlib
+
+    import torch
+
+    from .pretrain import CHECKPOINT
+
+    state = torch.load(Path(path) if path is not None else CHECKPOINT, map_location="cpu", weights_only=True)
+    h = hashlib.sha256()
+    for k in sorted(state):
+        t = state[k].contiguous()
+        h.update(f"{k}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
 def _path(name: str, results_dir) -> Path:
     if not isinstance(name, str) or not name or "/" in name:
         raise ValueError(f"name must be a notebook stem such as '03_distance_ranking_weighted_loss', got {name!r}")
@@ -42,7 +61,8 @@ def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> P
     path = _path(name, results_dir)
     stamp = environment_header("reproduce")
     stamp["date"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d")
-    doc = {"notebook": name, "stamp": stamp, "config": _canonical(config), "results": _canonical(results)}
+    doc = {"notebook": name, "stamp": stamp, "course_backbone": backbone_fingerprint(),
+           "config": _canonical(config), "results": _canonical(results)}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n", encoding="utf-8")
@@ -67,6 +87,10 @@ def load(name: str, config: Mapping, *, results_dir=None) -> dict:
         raise ValueError(f"notebooks/results/{path.name} is stale: its experiment config differs from the "
                          f"notebook's in {keys} (committed {[(have or {}).get(k) for k in keys]}, notebook "
                          f"{[want.get(k) for k in keys]}); re-run the notebook with PROFILE = 'reproduce' and commit")
+    if doc.get("course_backbone") != backbone_fingerprint():
+        raise ValueError(f"notebooks/results/{path.name} is stale: it was computed with other course-backbone "
+                         f"weights than data_fixtures/course_backbone.pt holds now; re-run the notebook with "
+                         f"PROFILE = 'reproduce' and commit")
     return doc
 
 
