@@ -334,3 +334,87 @@ def test_mine_triplets_bad_inputs(triplet_world):
     for kw in bad:
         with pytest.raises(ValueError):
             mine_triplets(**{**base, **kw})
+
+
+# ----------------------------------------------------------------------------- regions, headings, batch statistics
+def city_worlds(n_cities=4, seed=0):
+    """Several ``street_world`` cities 100 km apart: utm, groups, group descriptors, region labels."""
+    parts, off = [], 0
+    for c in range(n_cities):
+        utm, groups, desc = street_world(seed=seed + c, n_streets=4)
+        parts.append((utm + [c * 1e5, 0.0], groups + off, desc, np.full(len(utm), f"city{c}")))
+        off += len(desc)
+    utm = np.concatenate([p[0] for p in parts])
+    groups = np.concatenate([p[1] for p in parts])
+    desc = np.concatenate([p[2] for p in parts])
+    regions = np.concatenate([p[3] for p in parts])
+    return utm, groups, desc, regions
+
+
+def test_similar_groups_stay_in_the_anchor_region():
+    utm, groups, desc, regions = city_worlds()
+    out = clique_batches(utm, groups, desc, 1, similar_groups=15, num_batches=30, seed=0, regions=regions)
+    for b in out:   # a 1-place batch comes from one anchor: all of its images lie in one city
+        assert len(np.unique(regions[b.reshape(-1)])) == 1
+    full = clique_batches(utm, groups, desc, 20, similar_groups=15, num_batches=4, seed=1, regions=regions)
+    check_batch_invariants(full, utm, 25.0, (4, 20, 4))
+    with pytest.raises(ValueError, match="same region"):
+        bad = regions.copy()
+        bad[0] = "city3"
+        clique_batches(utm, groups, desc, 5, regions=bad)
+    with pytest.raises(ValueError):
+        clique_batches(utm, groups, desc, 5, regions=regions[:-1])
+
+
+def test_clique_batches_are_closer_and_more_alike_than_random():
+    # the issue-12 check: within-city similar groups give places that are closer and look more alike
+    from vpr_nb.mining import batch_statistics
+    utm, groups, desc, regions = city_worlds()
+    image_desc = desc[groups] / np.linalg.norm(desc[groups], axis=1, keepdims=True)
+    cb = clique_batches(utm, groups, desc, 10, similar_groups=15, num_batches=20, seed=0, regions=regions)
+    rb = random_place_batches(groups, 10, 4, num_batches=20, seed=0)
+    sc, sr = batch_statistics(cb, utm, image_desc), batch_statistics(rb, utm, image_desc)
+    assert sc["median place distance (m)"] < 0.5 * sr["median place distance (m)"]
+    assert sc["median place similarity"] > sr["median place similarity"]
+
+
+def test_heading_test_in_the_clique_graph():
+    # images at one spot facing two opposite ways: without the heading test a place mixes them
+    rng = np.random.default_rng(0)
+    spots = np.repeat(np.arange(0.0, 600.0, 30.0), 8)
+    utm = np.stack([spots, np.zeros_like(spots)], 1) + rng.normal(scale=0.5, size=(len(spots), 2))
+    heading = np.tile([0.0, 0.0, 0.0, 0.0, 180.0, 180.0, 180.0, 180.0], len(spots) // 8) + rng.normal(0, 3, len(spots))
+    groups = (np.arange(len(spots)) // 8) * 2 + (heading > 90)
+    desc = rng.normal(size=(groups.max() + 1, 4)).astype(np.float32)
+    kw = dict(images_per_place=4, similar_groups=3, num_batches=10, seed=0)
+    mixed = clique_batches(utm, groups, desc, 5, **kw)
+    same = clique_batches(utm, groups, desc, 5, headings=heading, max_heading_diff=30.0, **kw)
+    spread = lambda b: np.abs((heading[b] - heading[b][..., :1] + 180) % 360 - 180).max(axis=-1)
+    assert (spread(same) <= 30.0).all()
+    assert (spread(mixed) > 30.0).any()
+    check_batch_invariants(same, utm, 25.0, (10, 5, 4))
+    with pytest.raises(ValueError, match="headings"):
+        clique_batches(utm, groups, desc, 5, max_heading_diff=30.0)
+
+
+def test_clique_batch_maker_given_descriptors_and_resume(world):
+    utm, groups, desc = world
+    images = np.zeros((len(utm), 4, 4, 3), np.uint8)
+    maker = CliqueBatchMaker(images, utm, groups, 6, 2, similar_groups=4, group_descriptors=desc)
+    model = CountingModel()
+    a = maker(model, 0, np.random.default_rng(0))
+    assert model.calls == 0 and maker.refreshed_at == []   # given descriptors: the model is not run
+    expect = clique_batches(utm, groups, desc, 6, similar_groups=4, num_batches=2,
+                            seed=int(np.random.default_rng(0).integers(2**63)))
+    np.testing.assert_array_equal(a, expect)
+    other = CliqueBatchMaker(images, utm, groups, 6, 2, similar_groups=4)
+    other.load_state_dict(maker.state_dict())
+    np.testing.assert_array_equal(other(model, 1, np.random.default_rng(5)), maker(model, 1, np.random.default_rng(5)))
+    assert model.calls == 0
+
+
+def test_one_region_gives_the_same_batches_as_no_regions(world):
+    utm, groups, desc = world
+    a = clique_batches(utm, groups, desc, 10, num_batches=4, seed=2)
+    b = clique_batches(utm, groups, desc, 10, num_batches=4, seed=2, regions=np.zeros(len(utm), int))
+    np.testing.assert_array_equal(a, b)

@@ -5,6 +5,7 @@
 * :class:`CliqueBatchMaker` -- CliqueMining batches for the training loop, with group descriptors
   from the current model computed once (the original) or refreshed every E epochs.
 * :func:`random_place_batches` -- the GSV-Cities baseline: random places, random images of each.
+* :func:`batch_statistics` -- how close and how alike the places of a batch are.
 * :func:`mine_triplets` -- NetVLAD (Arandjelovic et al., CVPR 2016) weakly supervised triplets:
   best positive within 10 m, hardest negatives beyond 25 m, with a per-query negative cache.
 
@@ -91,36 +92,76 @@ def _grow_clique(clique: list[int], cand: list[int], adj, m: int) -> list[int] |
 
 
 class _CliqueMiner:
-    """The state shared by every batch of :func:`clique_batches` (picklable for worker processes)."""
+    """The index shared by every batch (built once; picklable for worker processes).
 
-    def __init__(self, utm: np.ndarray, groups: np.ndarray, group_descriptors: np.ndarray,
-                 places_per_batch: int, images_per_place: int, threshold: float, similar_groups: int):
+    Built once per image set: the images of each group (``order``/``starts``), the present groups
+    sorted by region (``present``, with region ``r`` owning ``present[rstarts[r]:rstarts[r + 1]]``),
+    and, after :meth:`set_descriptors`, their descriptors in the same order. A batch then touches only
+    the anchor region's groups and the images of the drawn groups: its cost does not grow with the
+    number of images or regions.
+    """
+
+    def __init__(self, utm: np.ndarray, groups: np.ndarray, group_descriptors: np.ndarray | None,
+                 places_per_batch: int, images_per_place: int, threshold: float, similar_groups: int,
+                 regions: np.ndarray | None = None, headings: np.ndarray | None = None,
+                 max_heading_diff: float | None = None):
         self.utm = utm
         self.order, self.starts = _group_index(groups)
-        self.present = np.flatnonzero(np.diff(self.starts) > 0)  # group ids that have images
-        self.desc = group_descriptors[self.present]
-        self.sqnorm = np.einsum("ij,ij->i", self.desc, self.desc)
-        self.k_similar = min(similar_groups, len(self.present) - 1)
+        present = np.flatnonzero(np.diff(self.starts) > 0)  # group ids that have images
+        if regions is None:
+            greg = np.zeros(len(present), dtype=np.int64)
+        else:
+            _, rid = np.unique(regions, return_inverse=True)
+            rid = rid.reshape(-1)
+            greg = rid[self.order[self.starts[present]]]   # region of each group's first image
+            sizes = np.diff(self.starts)[present]
+            if not np.array_equal(rid[self.order], np.repeat(greg, sizes)):
+                raise ValueError("every image of a place group must be in the same region (city): "
+                                 "give groups that do not span regions")
+        ro = np.argsort(greg, kind="stable")
+        self.present = present[ro]
+        counts = np.bincount(greg)
+        self.rstarts = np.concatenate([[0], np.cumsum(counts)])
+        self.rlist = np.flatnonzero(counts > 0)              # regions that have groups
+        self.rweight = counts[self.rlist].astype(np.float64)  # P(region) ∝ its number of groups (as published)
+        self.headings = None if headings is None else np.asarray(headings, dtype=np.float64)
+        self.max_heading_diff = max_heading_diff
+        self.similar = similar_groups
         self.places = places_per_batch
         self.m = images_per_place
         self.threshold = threshold
         self.max_anchors = max(_MIN_ANCHORS, _ANCHORS_PER_PLACE * places_per_batch)
+        self.desc = self.sqnorm = None
+        if group_descriptors is not None:
+            self.set_descriptors(group_descriptors)
 
-    def similar_groups(self, anchor: int, rng: np.random.Generator) -> np.ndarray:
-        """Anchor + ``k_similar`` groups drawn without replacement with P ∝ (max d - d).
+    def set_descriptors(self, group_descriptors: np.ndarray) -> None:
+        """Use these ``(G, D)`` group descriptors (rows indexed by group id)."""
+        self.desc = np.ascontiguousarray(group_descriptors[self.present])
+        self.sqnorm = np.einsum("ij,ij->i", self.desc, self.desc)
 
-        ``d`` is the descriptor distance to the anchor over all present groups. Sampling uses the
+    @property
+    def k_similar(self) -> int:  # over the whole data set (one region); per region see similar_groups
+        return min(self.similar, len(self.present) - 1)
+
+    def similar_groups(self, anchor: int, rng: np.random.Generator, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        """Anchor + ``similar_groups`` groups of its region drawn without replacement, P ∝ (max d - d).
+
+        ``anchor`` indexes ``present``; the region is ``present[lo:hi]`` (all groups by default).
+        ``d`` is the descriptor distance to the anchor over the region's groups. Sampling uses the
         exponential race (the k smallest ``E_j / w_j``), which has the law of successive draws
         without replacement. Zero-weight groups (the farthest one; all of them when every distance
         is equal) are drawn uniformly, only after every positive-weight group.
         """
-        k = self.k_similar
+        hi = len(self.present) if hi is None else hi
+        desc, sq, a = self.desc[lo:hi], self.sqnorm[lo:hi], anchor - lo
+        k = min(self.similar, hi - lo - 1)
         # einsum, not ``@``: a multi-threaded BLAS gemv is ~50x slower on an oversubscribed machine
-        d2 = self.sqnorm + self.sqnorm[anchor] - 2.0 * np.einsum("ij,j->i", self.desc, self.desc[anchor])
+        d2 = sq + sq[a] - 2.0 * np.einsum("ij,j->i", desc, desc[a])
         d = np.sqrt(np.maximum(d2, 0.0))
         w = d.max() - d
         e = rng.standard_exponential(len(w))
-        w[anchor], e[anchor] = 0.0, np.inf  # the anchor is never drawn
+        w[a], e[a] = 0.0, np.inf  # the anchor is never drawn
         pos = np.flatnonzero(w > 0)
         if len(pos) >= k:
             pick = pos[np.argpartition(e[pos] / w[pos], k - 1)[:k]] if k else pos[:0]
@@ -128,13 +169,25 @@ class _CliqueMiner:
             zero = np.flatnonzero(w <= 0)
             rest = k - len(pos)
             pick = np.concatenate([pos, zero[np.argpartition(e[zero], rest - 1)[:rest]]])
-        return self.present[np.concatenate([[anchor], pick])]
+        return self.present[lo + np.concatenate([[a], pick]).astype(np.int64)]
 
-    def neighbours(self, pts: np.ndarray) -> list[np.ndarray]:
-        """For each point, the sorted indices of the other points closer than the threshold."""
+    def neighbours(self, pool: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """For each image of ``pool``: (the sorted pool positions of the other images closer than the
+        threshold, the same restricted to images facing the same way) -- the second list is the
+        clique graph, the first one what is removed around a chosen place."""
+        pts = self.utm[pool]
         n = len(pts)
         ij = cKDTree(pts).query_pairs(self.threshold * (1 + 1e-9), output_type="ndarray")
         ij = ij[_dist(pts[ij[:, 0]], pts[ij[:, 1]]) < self.threshold]
+        geo = self._lists(ij, n)
+        if self.headings is None or self.max_heading_diff is None:
+            return geo, geo
+        h = self.headings[pool]
+        ok = np.abs((h[ij[:, 0]] - h[ij[:, 1]] + 180.0) % 360.0 - 180.0) <= self.max_heading_diff
+        return geo, self._lists(ij[ok], n)
+
+    @staticmethod
+    def _lists(ij: np.ndarray, n: int) -> list[np.ndarray]:
         rows = np.concatenate([ij[:, 0], ij[:, 1]]).astype(np.int64)
         cols = np.concatenate([ij[:, 1], ij[:, 0]]).astype(np.int64)
         srt = np.argsort(rows * n + cols)
@@ -149,15 +202,15 @@ class _CliqueMiner:
         Images closer than the threshold to a ``blocked`` position (images already in the batch)
         are removed first. Then, scanning the pool in ascending image index, the first alive image
         that belongs to a clique of >= m alive images gives a place: that clique is grown greedily
-        to a maximal clique, m random members are taken, and they and all their neighbours are
-        removed. An image that is in no such clique now never will be (the graph only shrinks),
-        so each image is visited once.
+        to a maximal clique, m random members are taken, and they and all their geographic
+        neighbours (any heading) are removed. An image that is in no such clique now never will be
+        (the graph only shrinks), so each image is visited once.
         """
         pts = self.utm[pool]
         alive = np.ones(len(pool), dtype=bool)
         if len(blocked):
             alive &= ~(_dist(pts[:, None, :], blocked[None, :, :]) < self.threshold).any(axis=1)
-        nbrs = self.neighbours(pts)
+        geo, nbrs = self.neighbours(pool)
         sets: dict[int, set[int]] = {}
 
         def adj(u: int) -> set[int]:
@@ -186,17 +239,29 @@ class _CliqueMiner:
             found.append(pool[chosen])
             alive[chosen] = False
             for c in chosen:
-                alive[nbrs[c]] = False
+                alive[geo[c]] = False
         return found
 
     def batch(self, index: int, seed: np.random.SeedSequence) -> np.ndarray:
         """One ``(places, m)`` batch; raises ValueError when the data cannot fill it."""
+        if self.desc is None:
+            raise ValueError("no group descriptors: call set_descriptors first")
         rng = np.random.default_rng(seed)
         places: list[np.ndarray] = []
         blocked = np.empty((0, 2))
+        used = np.zeros(len(self.rlist), dtype=bool)
         for _ in range(self.max_anchors):
-            anchor = int(rng.integers(len(self.present)))
-            groups = self.similar_groups(anchor, rng)
+            if len(self.rlist) == 1:   # one region: no draw, so regions=None mines what it always did
+                r = 0
+            else:   # a region not used yet in this batch (all again once every one was used), P ∝ groups
+                if used.all():
+                    used[:] = False
+                w = np.where(used, 0.0, self.rweight)
+                r = int(rng.choice(len(w), p=w / w.sum()))
+                used[r] = True
+            lo, hi = int(self.rstarts[self.rlist[r]]), int(self.rstarts[self.rlist[r] + 1])
+            anchor = lo + int(rng.integers(hi - lo))
+            groups = self.similar_groups(anchor, rng, lo, hi)
             pool = np.sort(np.concatenate([self.order[self.starts[g]:self.starts[g + 1]] for g in groups]))
             new = self.places_in_pool(pool, blocked, self.places - len(places), rng)
             if new:
@@ -209,6 +274,17 @@ class _CliqueMiner:
             f"{self.max_anchors} anchor groups. The data has too few places of >= {self.m} images "
             f"pairwise < {self.threshold} m apart that are also >= {self.threshold} m from each other; "
             "lower places_per_batch, images_per_place or same_place_threshold, or add more groups")
+
+    def mine(self, num_batches: int, seed, num_workers: int = 1) -> np.ndarray:
+        """``num_batches`` batches; batch ``b`` uses ``SeedSequence(seed).spawn(num_batches)[b]``."""
+        seeds = _seed_sequences(seed, num_batches)
+        if num_workers == 1:
+            return np.stack([self.batch(i, s) for i, s in enumerate(seeds)]).astype(np.int64)
+        chunks = [c for c in np.array_split(np.arange(num_batches), 4 * num_workers) if len(c)]
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(num_workers, initializer=_init_worker, initargs=(self,)) as pool:
+            parts = pool.map(_mine_in_worker, [[(int(i), seeds[i]) for i in c] for c in chunks])
+        return np.concatenate(parts).astype(np.int64)
 
 
 _WORKER_MINER: _CliqueMiner | None = None
@@ -223,46 +299,90 @@ def _mine_in_worker(items: list[tuple[int, np.random.SeedSequence]]) -> np.ndarr
     return np.stack([_WORKER_MINER.batch(i, s) for i, s in items])
 
 
+def _checked_miner(utm, groups, group_descriptors, places_per_batch, images_per_place, same_place_threshold,
+                   similar_groups, regions, headings, max_heading_diff) -> _CliqueMiner:
+    """Validate the inputs of :func:`clique_batches` / :class:`CliqueBatchMaker` and build the index once."""
+    utm = as_utm(utm, "utm")
+    groups = _as_groups(groups, len(utm))
+    desc = None
+    if group_descriptors is not None:
+        desc = as_float_matrix(group_descriptors, "group_descriptors")
+        if len(desc) <= groups.max():
+            raise ValueError(f"group_descriptors has {len(desc)} rows but groups uses ids up to {int(groups.max())}: "
+                             f"give one row per group id 0..{int(groups.max())} (zero rows for unused ids)")
+    places_per_batch = check_int(places_per_batch, "places_per_batch")
+    images_per_place = check_int(images_per_place, "images_per_place", minimum=2)
+    threshold = check_positive(same_place_threshold, "same_place_threshold")
+    similar_groups = check_int(similar_groups, "similar_groups", minimum=0)
+    if len(utm) < places_per_batch * images_per_place:
+        raise ValueError(f"a batch needs {places_per_batch * images_per_place} distinct images but there are "
+                         f"only {len(utm)}; lower places_per_batch or images_per_place")
+    if regions is not None:
+        regions = np.asarray(regions)
+        if regions.shape != (len(utm),):
+            raise ValueError(f"regions must have one entry (city / region label) per image, shape ({len(utm)},); "
+                             f"got {regions.shape}")
+    if max_heading_diff is not None:
+        max_heading_diff = check_positive(max_heading_diff, "max_heading_diff")
+        if headings is None:
+            raise ValueError("max_heading_diff needs headings (degrees, one per image)")
+    if headings is not None:
+        headings = np.asarray(headings, dtype=np.float64)
+        if headings.shape != (len(utm),) or not np.isfinite(headings).all():
+            raise ValueError(f"headings must be ({len(utm)},) finite degrees, one per image; got shape {headings.shape}")
+    return _CliqueMiner(utm, groups, desc, places_per_batch, images_per_place, threshold, similar_groups,
+                        regions, headings, max_heading_diff)
+
+
 def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images_per_place: int = 4,
                    same_place_threshold: float = 25.0, similar_groups: int = 15, num_batches: int = 1,
-                   seed: int | np.random.Generator = 0, num_workers: int = 1) -> np.ndarray:
+                   seed: int | np.random.Generator = 0, num_workers: int = 1, *, regions=None,
+                   headings=None, max_heading_diff: float | None = None) -> np.ndarray:
     """CliqueMining batches (Izquierdo & Civera, ECCV 2024, Sec. 4 and ``create_dataset_part``).
 
     Each batch is built as in the authors' code:
 
-    1. pick an *anchor* place-group uniformly among the groups that have images;
-    2. draw ``similar_groups`` other groups without replacement with probability proportional to
-       ``max_j d_j - d_i``, where ``d_i`` is the Euclidean distance between the descriptors of group
-       ``i`` and of the anchor (linear weights, anchor weight 0; if all weights are 0 the draw is
-       uniform), so visually similar groups are likely;
+    1. pick a *region* (MSLS city) with probability proportional to its number of place groups,
+       never one already used in this batch, and an *anchor* place-group uniformly in it;
+    2. draw ``similar_groups`` other groups **of the same region** without replacement with
+       probability proportional to ``max_j d_j - d_i``, where ``d_i`` is the Euclidean distance
+       between the descriptors of group ``i`` and of the anchor over the region's groups (linear
+       weights, anchor weight 0; if all weights are 0 the draw is uniform), so visually similar
+       groups of the same city, usually close by, are likely;
     3. build the geographic graph on all images of these groups: an edge joins two images whose
-       UTM distance is ``< same_place_threshold``;
+       UTM distance is ``< same_place_threshold`` (and, with ``max_heading_diff``, whose headings
+       differ by at most that many degrees);
     4. take a clique of ``>= images_per_place`` images as one place and keep ``images_per_place``
        random members of it: they are pairwise closer than the threshold;
     5. remove the chosen images *and every image within the threshold of them*, so that all
        later places are ``>= same_place_threshold`` from every chosen image (hard negatives);
     6. repeat 4-5 until the batch is full or no clique is left, then go back to 1 with a new
-       anchor and keep filling the same batch.
+       region and keep filling the same batch.
 
-    Differences from the original code:
+    Remaining differences from the original code:
 
     * which clique: the original takes the first maximal clique of ``networkx.find_cliques``
       (DFS order); here it is the maximal clique grown greedily (smallest index first) from the
       smallest-index alive image that lies in a clique of ``>= images_per_place`` images;
-    * the original picks a new *city* per batch part and never meets the earlier places again;
-      here one image set is used, so images within the threshold of places already in the batch
-      are removed before each new anchor: every pair of places of a batch is ``>= threshold``
-      apart, across anchors too;
+    * ``regions=None`` means one region (the whole data set, as one MSLS city); once every region
+      was used in a batch, regions may repeat (the original would stop); images within the
+      threshold of places already in the batch are removed before each new anchor, so every pair of
+      places of a batch is ``>= threshold`` apart, across anchors too (the original never meets its
+      earlier places again because it moves to another city);
     * the similar groups are drawn among the group ids that have images (the original also
       draws ids with no image, whose zero descriptor rows give them a positive weight);
+    * the heading test (``max_heading_diff``) is an option the original does not have (MSLS
+      clusters are taken as they are); removal around a chosen place ignores headings;
     * the neighbourhood is built once per anchor with a k-d tree and an alive mask instead of a
-      new ``networkx.Graph`` from a dense adjacency matrix for every place;
+      new ``networkx.Graph`` from a dense adjacency matrix for every place; the per-region index is
+      built once per call (once per run in :class:`CliqueBatchMaker`), so a batch costs the same at
+      10k and 1M images;
     * batches are reproducible: batch ``b`` uses ``SeedSequence(seed).spawn(num_batches)[b]``,
       so the output does not depend on ``num_workers`` (the original seeds from pid and time).
 
     The group descriptors are used as given: the original computes them once, offline, with the
-    pre-trained model. :class:`CliqueBatchMaker` wraps this function for the training loop and
-    either computes them once or refreshes them with the current model every E epochs.
+    pre-trained model (one random image per group). :class:`CliqueBatchMaker` wraps this function
+    for the training loop and takes them given, computes them once, or refreshes them every E epochs.
 
     Args:
         utm: ``(N, 2)`` UTM positions in metres, one per image.
@@ -276,6 +396,11 @@ def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images
         num_batches: number of batches.
         seed: int seed (or a Generator that provides one).
         num_workers: processes (``multiprocessing`` "spawn" context) when > 1; same output.
+        regions: ``(N,)`` city / region label of each image (any sortable dtype); a group must not
+            span two regions. None: one region.
+        headings: ``(N,)`` camera headings in degrees (only with ``max_heading_diff``).
+        max_heading_diff: degrees; two images are joined in the clique graph only if their headings
+            differ by at most this (None: no heading test, as published).
 
     Returns:
         int64 array ``(num_batches, places_per_batch, images_per_place)`` of image indices.
@@ -284,30 +409,11 @@ def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images
         ValueError: on bad inputs, or when a batch cannot be filled after
             ``max(100, 10 * places_per_batch)`` anchors (too few separated places in the data).
     """
-    utm = as_utm(utm, "utm")
-    groups = _as_groups(groups, len(utm))
-    desc = as_float_matrix(group_descriptors, "group_descriptors")
-    if len(desc) <= groups.max():
-        raise ValueError(f"group_descriptors has {len(desc)} rows but groups uses ids up to {int(groups.max())}: "
-                         f"give one row per group id 0..{int(groups.max())} (zero rows for unused ids)")
-    places_per_batch = check_int(places_per_batch, "places_per_batch")
-    images_per_place = check_int(images_per_place, "images_per_place", minimum=2)
-    threshold = check_positive(same_place_threshold, "same_place_threshold")
-    similar_groups = check_int(similar_groups, "similar_groups", minimum=0)
-    num_batches = check_int(num_batches, "num_batches")
-    num_workers = check_int(num_workers, "num_workers")
-    if len(utm) < places_per_batch * images_per_place:
-        raise ValueError(f"a batch needs {places_per_batch * images_per_place} distinct images but there are "
-                         f"only {len(utm)}; lower places_per_batch or images_per_place")
-    seeds = _seed_sequences(seed, num_batches)
-    miner = _CliqueMiner(utm, groups, desc, places_per_batch, images_per_place, threshold, similar_groups)
-    if num_workers == 1:
-        return np.stack([miner.batch(i, s) for i, s in enumerate(seeds)]).astype(np.int64)
-    chunks = [c for c in np.array_split(np.arange(num_batches), 4 * num_workers) if len(c)]
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(num_workers, initializer=_init_worker, initargs=(miner,)) as pool:
-        parts = pool.map(_mine_in_worker, [[(int(i), seeds[i]) for i in c] for c in chunks])
-    return np.concatenate(parts).astype(np.int64)
+    if group_descriptors is None:
+        raise ValueError("group_descriptors is required: one descriptor row per group id")
+    miner = _checked_miner(utm, groups, group_descriptors, places_per_batch, images_per_place,
+                           same_place_threshold, similar_groups, regions, headings, max_heading_diff)
+    return miner.mine(check_int(num_batches, "num_batches"), seed, check_int(num_workers, "num_workers"))
 
 
 def sample_group_descriptors(descriptors, groups, seed: int | np.random.Generator = 0) -> np.ndarray:
@@ -342,34 +448,36 @@ def _one_image_per_group(groups: np.ndarray, seed) -> tuple[np.ndarray, np.ndarr
 class CliqueBatchMaker:
     """``make_batches(model, epoch, rng)`` for :class:`vpr_nb.training.PlaceBatchSource` with CliqueMining.
 
-    The group descriptors come from ``model`` (one random image per group, as in the original code;
-    only those images are encoded, so ``images`` may be a lazy on-disk array).
-    ``refresh_every=None`` computes them once, at the first call, and keeps them for the whole run
-    (the original: descriptors of the pre-trained model, computed once, offline);
-    ``refresh_every=E`` recomputes them with the current model at every epoch that is a multiple of E.
-    Each call mines ``num_batches`` fresh batches with :func:`clique_batches`, seeded from ``rng``.
+    The per-region index of :func:`clique_batches` is built once, here. The group descriptors are
+    ``group_descriptors`` when given (the original: descriptors of a pre-trained model, computed
+    once, offline), else they come from ``model`` (one random image per group, as in the original
+    code; only those images are encoded, so ``images`` may be a lazy on-disk array).
+    ``refresh_every=None`` keeps the first descriptors for the whole run (computed at the first call
+    if not given); ``refresh_every=E`` recomputes them with the current model at every epoch that is a
+    multiple of E. Each call mines ``num_batches`` fresh batches, seeded from ``rng``.
 
     Attributes:
-        refreshed_at: epochs at which the descriptors were (re)computed.
+        refreshed_at: epochs at which the descriptors were computed from the model.
     """
 
     def __init__(self, images, utm, groups, places_per_batch: int, num_batches: int, *,
                  images_per_place: int = 4, same_place_threshold: float = 25.0, similar_groups: int = 15,
-                 refresh_every: int | None = None, num_workers: int = 1):
+                 refresh_every: int | None = None, num_workers: int = 1, group_descriptors=None,
+                 regions=None, headings=None, max_heading_diff: float | None = None):
         from vpr_nb.evaluation import as_image_array
         self.images = as_image_array(images)   # numpy, or a lazy on-disk ImageArray (only indexed images are read)
         self.utm = as_utm(utm, "utm")
         self.groups = _as_groups(groups, len(self.utm))
         if len(self.images) != len(self.utm):
             raise ValueError(f"images has {len(self.images)} entries but utm has {len(self.utm)}: one geotag per image")
-        self.kwargs = dict(places_per_batch=check_int(places_per_batch, "places_per_batch"),
-                           images_per_place=check_int(images_per_place, "images_per_place", minimum=2),
-                           same_place_threshold=check_positive(same_place_threshold, "same_place_threshold"),
-                           similar_groups=check_int(similar_groups, "similar_groups", minimum=0),
-                           num_batches=check_int(num_batches, "num_batches"),
-                           num_workers=check_int(num_workers, "num_workers"))
+        self.num_batches = check_int(num_batches, "num_batches")
+        self.num_workers = check_int(num_workers, "num_workers")
         self.refresh_every = None if refresh_every is None else check_int(refresh_every, "refresh_every")
+        self.miner = _checked_miner(self.utm, self.groups, group_descriptors, places_per_batch, images_per_place,
+                                    same_place_threshold, similar_groups, regions, headings, max_heading_diff)
         self.group_descriptors: np.ndarray | None = None
+        if group_descriptors is not None:
+            self.group_descriptors = as_float_matrix(group_descriptors, "group_descriptors").copy()
         self.refreshed_at: list[int] = []
 
     def state_dict(self) -> dict:
@@ -382,6 +490,8 @@ class CliqueBatchMaker:
     def load_state_dict(self, state: dict) -> None:
         d = state.get("group_descriptors")
         self.group_descriptors = None if d is None else np.asarray(d, dtype=np.float32).copy()
+        if self.group_descriptors is not None:
+            self.miner.set_descriptors(self.group_descriptors)
         self.refreshed_at = [int(e) for e in state.get("refreshed_at", [])]
 
     def __call__(self, model, epoch: int, rng: np.random.Generator) -> np.ndarray:
@@ -396,8 +506,42 @@ class CliqueBatchMaker:
             self.group_descriptors = np.zeros((num, desc.shape[1]), dtype=np.float32)
             self.group_descriptors[present] = desc
             self.refreshed_at.append(int(epoch))
-        return clique_batches(self.utm, self.groups, self.group_descriptors,
-                              seed=int(rng.integers(2**63)), **self.kwargs)
+        if self.miner.desc is None or self.miner.desc.shape[1] != self.group_descriptors.shape[1] \
+                or self._set_from is not self.group_descriptors:
+            self.miner.set_descriptors(self.group_descriptors)
+            self._set_from = self.group_descriptors
+        return self.miner.mine(self.num_batches, int(rng.integers(2**63)), self.num_workers)
+
+    _set_from = None
+
+
+def batch_statistics(batches, utm, descriptors=None) -> dict:
+    """How close and how alike the places of batches are (the point of CliqueMining).
+
+    For every batch ``(P, K)`` and every pair of its places: the distance between the place centres
+    (mean UTM of the K images) and, with ``descriptors`` (one row per image, L2-normalised), the
+    cosine similarity of the place descriptors (mean of the K image descriptors, L2-normalised).
+
+    Returns:
+        ``{"median place distance (m)": ..., "median place similarity": ... (NaN without descriptors),
+        "cities per batch": ...}`` medians over all pairs of all batches (the last key is absent).
+    """
+    b = np.asarray(batches)
+    if b.ndim == 2:
+        b = b[None]
+    if b.ndim != 3 or b.shape[1] < 2:
+        raise ValueError(f"batches must have shape (B, P, K) with P >= 2, got {b.shape}")
+    u = as_utm(utm, "utm")
+    iu = np.triu_indices(b.shape[1], 1)
+    centre = u[b].mean(axis=2)                                             # (B, P, 2)
+    dist = _dist(centre[:, :, None, :], centre[:, None, :, :])[:, iu[0], iu[1]]
+    out = {"median place distance (m)": float(np.median(dist)), "median place similarity": float("nan")}
+    if descriptors is not None:
+        x = as_float_matrix(descriptors, "descriptors")[b].mean(axis=2)    # (B, P, D)
+        x /= np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
+        sim = np.einsum("bpd,bqd->bpq", x, x)[:, iu[0], iu[1]]
+        out["median place similarity"] = float(np.median(sim))
+    return out
 
 
 # ----------------------------------------------------------------------------- random baseline
