@@ -38,7 +38,7 @@ assignments: venv
 	$(BIN)/python -m vpr_nb.assignments generate notebooks assignments
 
 lab: venv
-	$(BIN)/jupyter lab notebooks
+	$(BIN)/jupyter lab notebooks $$(test "$$(id -u)" = 0 && echo --allow-root)
 
 bench: venv
 	for f in bench/bench_*.py; do echo "== $$f"; $(BIN)/python $$f --quick || exit 1; done

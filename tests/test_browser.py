@@ -300,9 +300,15 @@ def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_prope
                 page.keyboard.press("ArrowRight")   # sigma one step up (0.05 in log10)
                 deadline = time.monotonic() + budget.left_s(UPDATE_TIMEOUT_MS / 1000)
                 after = before
-                while after == before and time.monotonic() < deadline:
+                # The widget clears its output, then prints: wait for a *complete* new text that stays
+                # the same for half a second, not an in-between state.
+                while time.monotonic() < deadline:
                     page.wait_for_timeout(250)
                     after = _widget_text(cell, ui())
+                    if after != before and _has_weight_line(after):
+                        page.wait_for_timeout(500)
+                        if _widget_text(cell, ui()) == after:
+                            break
                 cell.scroll_into_view_if_needed(timeout=ui())
                 page.screenshot(path=str(screenshot), timeout=ui())
             except (PlaywrightError, AssertionError, pytest.fail.Exception) as exc:
@@ -325,6 +331,11 @@ def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_prope
         else:
             assert w_after[d] > w, f"w({d:g} m) should grow when sigma grows: {before!r} -> {after!r}"
     assert screenshot.is_file() and screenshot.stat().st_size > 0
+
+
+def _has_weight_line(text: str) -> bool:
+    """Whether the explorer's output holds its full "w at ... | relative spread ..." line."""
+    return any(ln.startswith("w at ") and "relative spread" in ln for ln in text.splitlines())
 
 
 def _marked_weights(text: str) -> dict:
