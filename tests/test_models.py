@@ -12,13 +12,7 @@ from vpr_nb.models import (BACKBONE_NAMES, DINOv2Backbone, SmallCNN, VGG16Backbo
                            load_dinov2)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny ops: one thread avoids OpenMP spin-waits when the CPU is shared; restored afterwards."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")   # tests/conftest.py
 
 
 def _images(b: int = 2, h: int = 32, w: int = 48, seed: int = 0) -> torch.Tensor:
