@@ -1,17 +1,25 @@
-"""Benchmark: CliqueMining batches (vpr_nb.mining.clique_batches) against two budgets.
+"""Benchmark: CliqueMining batches (vpr_nb.mining) -- speed-up, cost per batch against N, memory.
 
 1. Speed-up over the straightforward formulation of bench/reference_clique.py (a dense adjacency
    and a new networkx graph per place) on the same inputs: target >= 10x. Both outputs are checked
    against the invariants (every place pairwise < threshold, places >= threshold apart, no image
    twice in a batch).
-2. 1M geotags -> 1000 batches of 30 places x 4 images in <= 60 s (2 cores; 1 worker and 2 workers).
+2. Cost of one 30 x 4 batch against the number of geotags N (10k -> 1M): the per-region index is
+   built once (as CliqueBatchMaker does), then batches are mined; target <= 5 ms per batch at 1M and
+   flat in N (the fitted exponent of ms-per-batch ~ N^e should be ~0). Index build time is printed apart.
+3. Memory (tracemalloc peaks): the index (once) and one batch at 1M geotags, against one call of the
+   published-style reference on one 10k-image city (the published code works city by city).
 
-The geotags are MSLS-like: several drives (random walks on a street grid, one image every ~3 m,
-GPS noise) over the same streets, grouped into 25 m cells (the ``unique_cluster`` analogue); each
-group descriptor is a 64-D random Fourier feature of the cell centre plus noise, L2-normalised.
+Only ratios measured in this one run are printed; nothing fails on absolute time (the machine may be
+loaded), only on broken invariants.
 
-    python bench/bench_mining.py            # 20k geotags for the speed-up, 1M for the budget
-    python bench/bench_mining.py --quick    # 5k geotags for the speed-up, 100k / 100 batches
+The geotags are MSLS-like: cities of 10k images, each several drives (random walks on a street grid,
+one image every ~3 m, GPS noise) over the same streets, grouped into 25 m cells (the
+``unique_cluster`` analogue); each group descriptor is a 64-D random Fourier feature of the cell
+centre plus noise, L2-normalised. Cities are 100 km apart and labelled as regions.
+
+    python bench/bench_mining.py            # 20k geotags for the speed-up, N up to 1M
+    python bench/bench_mining.py --quick    # 5k geotags for the speed-up, N up to 100k
 """
 from __future__ import annotations
 
@@ -19,15 +27,17 @@ import argparse
 import os
 import sys
 import time
+import tracemalloc
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from reference_clique import reference_clique_batches  # noqa: E402
 
-from vpr_nb.mining import clique_batches  # noqa: E402
+from vpr_nb.mining import _checked_miner, clique_batches  # noqa: E402
 
-BUDGET_S = 60.0
+TARGET_MS = 5.0
+CITY = 10_000
 TARGET_SPEEDUP = 10.0
 
 
@@ -68,6 +78,16 @@ def geotagged_groups(n: int, seed: int = 0, cell: float = 25.0, dim: int = 64):
     return utm, groups, desc.astype(np.float32)
 
 
+def cities(n: int, seed: int = 0):
+    """``n`` geotags in cities of ``CITY`` images 100 km apart: utm, compact group ids, descriptors, regions."""
+    parts, off = [], 0
+    for c in range(int(np.ceil(n / CITY))):
+        utm, groups, desc = geotagged_groups(min(CITY, n - c * CITY), seed=seed * 1000 + c)
+        parts.append((utm + [c * 1e5, 0.0], groups + off, desc, np.full(len(utm), c)))
+        off += len(desc)
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+
+
 def check_invariants(batches: np.ndarray, utm: np.ndarray, threshold: float) -> None:
     for b in batches:
         assert len(np.unique(b)) == b.size, "an image twice in a batch"
@@ -106,16 +126,41 @@ def main() -> None:
           f"speed-up: {t_ref / t_ours:.1f}x (target >= {TARGET_SPEEDUP:.0f}x, ratio to target "
           f"{t_ref / t_ours / TARGET_SPEEDUP:.2f})")
 
-    # 2. the 1M-geotag budget
-    (utm, groups, desc), t_gen = timed(geotagged_groups, n_big, 1)
-    print(f"[budget] {n_big:,} geotags, {groups.max() + 1:,} groups (generated in {t_gen:.1f} s), "
-          f"{big_batches} batches of 30x4")
-    for workers in (1, 2):
-        out, secs = timed(clique_batches, utm, groups, desc, 30, num_batches=big_batches, seed=0,
-                          num_workers=workers)
-        check_invariants(out[:50], utm, 25.0)
-        print(f"  num_workers={workers}: {secs:.2f} s   ratio to the {BUDGET_S:.0f} s budget: "
-              f"{secs / BUDGET_S:.3f} (< 1 is within budget)")
+    # 2. cost per batch against N, index built once
+    sizes = (10_000, 30_000, 100_000) if args.quick else (10_000, 100_000, 1_000_000)
+    n_batches = 50 if args.quick else 200
+    per_batch = []
+    for n in sizes:
+        (utm, groups, desc, regions), t_gen = timed(cities, n, 1)
+        miner, t_index = timed(_checked_miner, utm, groups, desc, 30, 4, 25.0, 15, regions, None, None)
+        miner.mine(5, 99)                                  # warm-up
+        out, secs = timed(miner.mine, n_batches, 0)
+        check_invariants(out[:20], utm, 25.0)
+        per_batch.append(1e3 * secs / n_batches)
+        print(f"[per batch] N={n:>9,}: {groups.max() + 1:,} groups in {regions.max() + 1} cities "
+              f"(generated in {t_gen:.1f} s), index {t_index:.2f} s once, {per_batch[-1]:.2f} ms per 30x4 batch "
+              f"(ratio to the {TARGET_MS:.0f} ms target {per_batch[-1] / TARGET_MS:.2f})")
+    e = np.polyfit(np.log(sizes), np.log(per_batch), 1)[0]
+    print(f"  fitted exponent of ms per batch ~ N^e from {sizes[0]:,} to {sizes[-1]:,}: e = {e:.3f} (flat: ~0)")
+
+    # 3. memory: the index once and one batch at the largest N, the reference on one city
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    base = tracemalloc.get_traced_memory()[0]
+    miner = _checked_miner(utm, groups, desc, 30, 4, 25.0, 15, regions, None, None)
+    index_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
+    tracemalloc.reset_peak()
+    base = tracemalloc.get_traced_memory()[0]
+    miner.mine(1, 7)
+    batch_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
+    cu, cg, cd, _ = cities(CITY, 2)
+    tracemalloc.reset_peak()
+    base = tracemalloc.get_traced_memory()[0]
+    reference_clique_batches(cu, cg, cd, 30, num_batches=1, seed=0)
+    ref_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
+    tracemalloc.stop()
+    print(f"[memory] N={sizes[-1]:,}: index {index_mb:.1f} MiB (once per run), one batch {batch_mb:.2f} MiB; "
+          f"reference, one call on a {CITY:,}-image city: {ref_mb:.2f} MiB; batch / reference = {batch_mb / ref_mb:.2f}")
 
 
 if __name__ == "__main__":

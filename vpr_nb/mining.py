@@ -171,20 +171,21 @@ class _CliqueMiner:
             pick = np.concatenate([pos, zero[np.argpartition(e[zero], rest - 1)[:rest]]])
         return self.present[lo + np.concatenate([[a], pick]).astype(np.int64)]
 
-    def neighbours(self, pool: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    def neighbours(self, pool: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray], cKDTree]:
         """For each image of ``pool``: (the sorted pool positions of the other images closer than the
-        threshold, the same restricted to images facing the same way) -- the second list is the
-        clique graph, the first one what is removed around a chosen place."""
+        threshold, the same restricted to images facing the same way, the pool's k-d tree) -- the
+        second list is the clique graph, the first one what is removed around a chosen place."""
         pts = self.utm[pool]
         n = len(pts)
-        ij = cKDTree(pts).query_pairs(self.threshold * (1 + 1e-9), output_type="ndarray")
+        tree = cKDTree(pts)
+        ij = tree.query_pairs(self.threshold * (1 + 1e-9), output_type="ndarray")
         ij = ij[_dist(pts[ij[:, 0]], pts[ij[:, 1]]) < self.threshold]
         geo = self._lists(ij, n)
         if self.headings is None or self.max_heading_diff is None:
-            return geo, geo
+            return geo, geo, tree
         h = self.headings[pool]
         ok = np.abs((h[ij[:, 0]] - h[ij[:, 1]] + 180.0) % 360.0 - 180.0) <= self.max_heading_diff
-        return geo, self._lists(ij[ok], n)
+        return geo, self._lists(ij[ok], n), tree
 
     @staticmethod
     def _lists(ij: np.ndarray, n: int) -> list[np.ndarray]:
@@ -206,11 +207,15 @@ class _CliqueMiner:
         neighbours (any heading) are removed. An image that is in no such clique now never will be
         (the graph only shrinks), so each image is visited once.
         """
-        pts = self.utm[pool]
         alive = np.ones(len(pool), dtype=bool)
-        if len(blocked):
-            alive &= ~(_dist(pts[:, None, :], blocked[None, :, :]) < self.threshold).any(axis=1)
-        geo, nbrs = self.neighbours(pool)
+        geo, nbrs, tree = self.neighbours(pool)
+        if len(blocked):   # pool images within the threshold of an image already in the batch
+            near = tree.query_ball_point(blocked, self.threshold * (1 + 1e-9), return_sorted=False)
+            cand = np.unique(np.fromiter((i for lst in near for i in lst), dtype=np.int64))
+            if len(cand):
+                pts = self.utm[pool[cand]]
+                hit = (_dist(pts[:, None, :], blocked[None, :, :]) < self.threshold).any(axis=1)
+                alive[cand[hit]] = False
         sets: dict[int, set[int]] = {}
 
         def adj(u: int) -> set[int]:
