@@ -342,3 +342,81 @@ def test_query_topk_pure_function():
             query_topk(d2[:10], d2[10:], u2[:10], u2[10:], **{**dict(query=0, k=3), **bad})
     with pytest.raises(ValueError):
         query_topk(d2[:10], d2[10:, :3], u2[:10], u2[10:], 0)
+
+
+# ----------------------------------------------------------------------------- issue 12: same outputs, less memory
+def _previous_gds_profile(db, db_utm, max_distance, bin_width, q=None, q_utm=None, fit_range=(0.0, 25.0),
+                          qs=(0.1, 0.5, 0.9), keep_pairs=False):
+    """The computation of gds_profile before issue 12 (argsort of values, whole-array geo), for comparison."""
+    import math
+    from scipy.spatial import cKDTree
+    from vpr_nb.gds import _bin_index, _bin_quantiles, _pair_descriptor_distances, _weighted_line
+    db_tree = cKDTree(db_utm)
+    if q is None:
+        ij = db_tree.query_pairs(max_distance, output_type="ndarray")
+        i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
+        src, qd = db_utm, db
+    else:
+        sp = cKDTree(q_utm).sparse_distance_matrix(db_tree, max_distance, output_type="ndarray")
+        i, j = sp["i"].astype(np.int64), sp["j"].astype(np.int64)
+        src, qd = q_utm, q
+    geo = np.sqrt(((src[i] - db_utm[j]) ** 2).sum(axis=1))
+    keep = geo <= max_distance
+    i, j, geo = i[keep], j[keep], geo[keep]
+    desc = _pair_descriptor_distances(qd, db, i, j)
+    num_bins = int(math.ceil(max_distance / bin_width - 1e-9))
+    centers = bin_width * (np.arange(num_bins) + 0.5)
+    b = _bin_index(geo, bin_width, num_bins)
+    count = np.bincount(b, minlength=num_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.bincount(b, weights=desc, minlength=num_bins) / count
+        std = np.sqrt(np.bincount(b, weights=(desc - mean[b]) ** 2, minlength=num_bins) / count)
+    order = np.argsort(desc)
+    order = order[np.argsort(b.astype(np.int16)[order], kind="stable")]
+    quant = _bin_quantiles(desc[order], count, qs) if qs else {}
+    fit = (count > 0) & (centers >= fit_range[0]) & (centers <= fit_range[1])
+    slope, intercept = _weighted_line(centers[fit], mean[fit], count[fit].astype(np.float64))
+    return dict(count=count, mean=mean, std=std, quantiles=quant, slope=slope, intercept=intercept,
+                pair_geo=geo[order] if keep_pairs else None, pair_desc=desc[order] if keep_pairs else None)
+
+
+@pytest.mark.parametrize("mode,keep", [("all", False), ("all", True), ("query-db", False), ("query-db", True)])
+def test_gds_profile_outputs_identical_to_the_previous_implementation(mode, keep):
+    rng = np.random.default_rng(11)
+    db_utm = np.cumsum(rng.normal(scale=1.5, size=(3000, 2)), axis=0)
+    db = rng.normal(size=(3000, 16)).astype(np.float32)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    q_utm = db_utm[::3] + rng.normal(scale=2.0, size=(1000, 2))
+    q = rng.normal(size=(1000, 16)).astype(np.float32)
+    kw = dict(fit_range=(0.0, 20.0), keep_pairs=keep)
+    if mode == "all":
+        new = gds_profile(db, db_utm, 30.0, 2.5, pairs="all", **kw)
+        old = _previous_gds_profile(db, db_utm, 30.0, 2.5, fit_range=(0.0, 20.0), keep_pairs=keep)
+    else:
+        new = gds_profile(db, db_utm, 30.0, 2.5, query_descriptors=q, query_utm=q_utm, **kw)
+        old = _previous_gds_profile(db, db_utm, 30.0, 2.5, q, q_utm, fit_range=(0.0, 20.0), keep_pairs=keep)
+    np.testing.assert_array_equal(new.count, old["count"])
+    np.testing.assert_array_equal(new.mean, old["mean"])
+    np.testing.assert_array_equal(new.std, old["std"])
+    assert new.slope == old["slope"] and new.intercept == old["intercept"]
+    assert new.quantiles.keys() == old["quantiles"].keys()
+    for k in new.quantiles:
+        np.testing.assert_array_equal(new.quantiles[k], old["quantiles"][k])
+    if keep:
+        np.testing.assert_array_equal(new.pair_desc, old["pair_desc"])
+        # pairs with exactly equal (bin, descriptor distance) may come in another order: compare canonically
+        canon = lambda g, d: np.lexsort((g, d))
+        np.testing.assert_array_equal(new.pair_geo[canon(new.pair_geo, new.pair_desc)],
+                                      old["pair_geo"][canon(old["pair_geo"], old["pair_desc"])])
+        for d1, d2 in ((0.0, 10.0), (2.5, 20.0)):
+            assert misordering_probability(new, d1, d2, "empirical") == _emp(old, d1, d2)
+    else:
+        assert new.pair_desc is None and new.pair_geo is None
+
+
+def _emp(old, d1, d2, width=2.5):
+    start = np.concatenate([[0], np.cumsum(old["count"])])
+    b1, b2 = int(d1 // width), int(d2 // width)
+    x1, x2 = old["pair_desc"][start[b1]:start[b1 + 1]], old["pair_desc"][start[b2]:start[b2 + 1]]
+    r, l = np.searchsorted(x1, x2, "right"), np.searchsorted(x1, x2, "left")
+    return float((np.sum(len(x1) - r, dtype=np.float64) + 0.5 * np.sum(r - l, dtype=np.float64)) / (len(x1) * len(x2)))

@@ -155,9 +155,18 @@ def _geo_pairs(db_utm: np.ndarray, q_utm: np.ndarray | None, max_distance: float
     else:
         sparse = cKDTree(q_utm).sparse_distance_matrix(db_tree, max_distance, output_type="ndarray")
         i, j = sparse["i"].astype(np.int64), sparse["j"].astype(np.int64)
+        del sparse
         src = q_utm
-    geo = np.sqrt(((src[i] - db_utm[j]) ** 2).sum(axis=1))
+    # the same float operations as ``sqrt(((src[i] - db[j]) ** 2).sum(1))``, in bounded-memory chunks
+    geo = np.empty(len(i), dtype=np.float64)
+    step = max(1, _CHUNK_FLOATS // 2)
+    for s in range(0, len(i), step):
+        diff = src[i[s:s + step]] - db_utm[j[s:s + step]]
+        np.square(diff, out=diff)
+        geo[s:s + step] = np.sqrt(diff.sum(axis=1))
     keep = geo <= max_distance  # the tree's own rounding may differ from ours by one ulp
+    if keep.all():
+        return i, j, geo
     return i[keep], j[keep], geo[keep]
 
 
@@ -176,11 +185,26 @@ def _bin_index(geo: np.ndarray | float, bin_width: float, num_bins: int) -> np.n
     return np.minimum(np.floor(np.asarray(geo) / bin_width).astype(np.int64), num_bins - 1)
 
 
+def _bin_value_keys(b: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """uint64 keys ``bin << 32 | bits(value)`` whose order is (bin, value) for float32 values >= 0.
+
+    The IEEE-754 bit pattern of a non-negative float32 read as uint32 is monotonic in the value, so
+    sorting the keys sorts by bin, then by value, in one pass over 8-byte integers.
+    """
+    keys = b.astype(np.uint64)
+    keys <<= np.uint64(32)
+    keys |= np.ascontiguousarray(values, dtype=np.float32).view(np.uint32)
+    return keys
+
+
+def _values_of_keys(keys: np.ndarray) -> np.ndarray:
+    """The float32 values of sorted :func:`_bin_value_keys` keys."""
+    return (keys & np.uint64(0xFFFFFFFF)).astype(np.uint32).view(np.float32)
+
+
 def _sort_by_bin_then_value(b: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Permutation sorting by bin, then by value (faster than ``np.lexsort`` for few bins)."""
-    order = np.argsort(values)
-    small = b.astype(np.int16) if b.max() < np.iinfo(np.int16).max else b  # radix sort for int16
-    return order[np.argsort(small[order], kind="stable")]
+    """Permutation sorting by bin, then by value (non-negative float32 values): one argsort of uint64 keys."""
+    return np.argsort(_bin_value_keys(b, values))
 
 
 def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float]:
@@ -278,10 +302,21 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     count = np.bincount(b, minlength=num_bins)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.bincount(b, weights=desc, minlength=num_bins) / count
-        std = np.sqrt(np.bincount(b, weights=(desc - mean[b]) ** 2, minlength=num_bins) / count)
+        dev = desc - mean[b]
+        np.square(dev, out=dev)
+        std = np.sqrt(np.bincount(b, weights=dev, minlength=num_bins) / count)
+        del dev
 
-    order = _sort_by_bin_then_value(b, desc) if (qs or keep_pairs) else None
-    quant = _bin_quantiles(desc[order], count, qs) if qs else {}
+    order = None
+    if keep_pairs:   # the pairs themselves are kept: one argsort of (bin, value) keys
+        order = _sort_by_bin_then_value(b, desc)
+        sorted_desc = desc[order]
+    elif qs:         # only quantiles: sort the values themselves, no permutation
+        keys = _bin_value_keys(b, desc)
+        keys.sort()
+        sorted_desc = _values_of_keys(keys)
+        del keys
+    quant = _bin_quantiles(sorted_desc, count, qs) if qs else {}
 
     fit = (count > 0) & (centers >= lo) & (centers <= hi)
     if fit.sum() >= 2:
@@ -294,7 +329,7 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
                       quantiles=quant, slope=slope, intercept=intercept, pairs=pairs,
                       fit_range=(lo, hi),
                       pair_geo=geo[order] if keep_pairs else None,
-                      pair_desc=desc[order] if keep_pairs else None)
+                      pair_desc=sorted_desc if keep_pairs else None)
 
 
 def _check_fit_range(fit_range) -> tuple[float, float]:
