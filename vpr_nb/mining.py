@@ -191,9 +191,10 @@ class _CliqueMiner:
     def _lists(ij: np.ndarray, n: int) -> list[np.ndarray]:
         rows = np.concatenate([ij[:, 0], ij[:, 1]]).astype(np.int64)
         cols = np.concatenate([ij[:, 1], ij[:, 0]]).astype(np.int64)
-        srt = np.argsort(rows * n + cols)
+        key = rows * n + cols                      # sort the (row, col) keys themselves, not a permutation
+        key.sort()
         indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))])
-        cols = cols[srt]
+        cols = key % n
         return [cols[indptr[v]:indptr[v + 1]] for v in range(n)]
 
     def places_in_pool(self, pool: np.ndarray, blocked: np.ndarray, need: int,
