@@ -96,3 +96,16 @@ def test_small_cnn_trainable_blocks(k, trainable):
     assert out.requires_grad == (k > 0)
     with pytest.raises(ValueError, match="trainable_blocks"):
         net.set_trainable_blocks(5)
+
+
+def test_course_backbone_before_the_final_relu():
+    """final_relu=False only removes the last ReLU: the map equals the pre-ReLU map, GeM is unchanged."""
+    from vpr_nb.aggregation import GeM
+    x = torch.randn(2, 3, 32, 48, generator=torch.Generator().manual_seed(0))
+    after, before = pretrain.course_backbone(), pretrain.course_backbone(final_relu=False)
+    with torch.no_grad():
+        a, b = after(x), before(x)
+    assert torch.equal(a, torch.relu(b)) and (b < 0).any()
+    assert torch.allclose(GeM(in_channels=128)(a), GeM(in_channels=128)(b))
+    with pytest.raises(ValueError, match="final_relu"):
+        pretrain.course_backbone(final_relu="no")

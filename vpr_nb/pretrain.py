@@ -204,13 +204,21 @@ def card(path=CHECKPOINT) -> dict:
     return json.loads(p.read_text())
 
 
-def course_backbone(path=CHECKPOINT, trainable_blocks: int = 0) -> SmallCNN:
+def course_backbone(path=CHECKPOINT, trainable_blocks: int = 0, final_relu: bool = True) -> SmallCNN:
     """Load the pretrained course backbone (float32), the last ``trainable_blocks`` of its 4 blocks trainable.
 
     ``trainable_blocks=0`` freezes it entirely (features only; the global token layer that SALAD
     reads always trains); 1 trains the last block (the 1×1 projection), as DW-T-Loss trains VGG16's
     conv5 and SALAD DINOv2's last blocks. The file's sha256 must equal the one in its JSON card.
+
+    ``final_relu=False`` reads the features before the last ReLU (the ReLU becomes an identity), as
+    pytorch-NetVlad reads VGG16's conv5_3 and SALAD reads DINOv2's tokens: after the ReLU many
+    positions are exactly zero in every channel, which NetVLAD's per-feature L2 normalisation and
+    SALAD's score head cannot use (notebook 04 measures it). GeM clamps at ε, so it gives the same
+    descriptor either way.
     """
+    if not isinstance(final_relu, bool):
+        raise ValueError(f"final_relu must be True or False, got {final_relu!r}")
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no course backbone at {path}; it is committed in data_fixtures/ or "
@@ -220,8 +228,10 @@ def course_backbone(path=CHECKPOINT, trainable_blocks: int = 0) -> SmallCNN:
         raise ValueError(f"{path} does not match the sha256 in its card {path.with_suffix('.json').name}: "
                          f"the file was changed or truncated; restore it with git or re-run its command "
                          f"({meta['command']})")
-    return _read_backbone(path, meta["config"]["width"], meta["config"]["out_channels"]).set_trainable_blocks(
-        trainable_blocks)
+    backbone = _read_backbone(path, meta["config"]["width"], meta["config"]["out_channels"])
+    if not final_relu:
+        backbone.features[-1] = torch.nn.Identity()
+    return backbone.set_trainable_blocks(trainable_blocks)
 
 
 def _read_backbone(path: Path, width: int, out_channels: int) -> SmallCNN:
