@@ -203,8 +203,27 @@ def _values_of_keys(keys: np.ndarray) -> np.ndarray:
 
 
 def _sort_by_bin_then_value(b: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Permutation sorting by bin, then by value (non-negative float32 values): one argsort of uint64 keys."""
-    return np.argsort(_bin_value_keys(b, values))
+    """Permutation sorting by bin, then by value (non-negative float32 values), ties by position.
+
+    When ``bin | value bits | position`` fits in 64 bits (e.g. 256 bins and 16M pairs) the keys are
+    sorted as values and the permutation is read from their low bits (no argsort); otherwise one
+    argsort of the ``bin | value`` keys.
+    """
+    n = len(values)
+    ib = max(1, (n - 1).bit_length())
+    nb = int(b.max()).bit_length() if n else 0
+    if 32 + ib + nb > 64:
+        return np.argsort(_bin_value_keys(b, values))
+    keys = b.astype(np.uint64)
+    keys <<= np.uint64(32 + ib)
+    bits = np.ascontiguousarray(values, dtype=np.float32).view(np.uint32).astype(np.uint64)
+    bits <<= np.uint64(ib)
+    keys |= bits
+    del bits
+    keys |= np.arange(n, dtype=np.uint64)
+    keys.sort()
+    keys &= np.uint64((1 << ib) - 1)
+    return keys.astype(np.int64)
 
 
 def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float]:
