@@ -275,6 +275,8 @@ print(f"mean cosine between two local features (before the ReLU): {mean_pairwise
 gem = GeM(in_channels=128)
 assert torch.equal(gem(after), gem(before))
 print("GeM(after the ReLU) == GeM(before the ReLU): True")
+# the package keeps this swap: course_backbone(final_relu=False), which notebook 05 uses
+assert torch.equal(course_backbone(final_relu=False)(x), before)
 """),
     ("md", r"""
 ## k-means initialisation and $\alpha$ on the course backbone

@@ -261,11 +261,8 @@ print(f"generated in {time.perf_counter() - t0:.1f} s")
 """),
     ("code", r"""
 def course(trainable_blocks):
-    # the course backbone read before its final ReLU (as notebook 04)
-    backbone = course_backbone(trainable_blocks=trainable_blocks)
-    assert isinstance(backbone.features[-1], torch.nn.ReLU)
-    backbone.features[-1] = torch.nn.Identity()
-    return backbone
+    # the course backbone read before its final ReLU (notebook 04 derives why)
+    return course_backbone(trainable_blocks=trainable_blocks, final_relu=False)
 
 
 PLAN_IMAGES = test_split.q_images[:64]
