@@ -792,7 +792,8 @@ class EpochPlaceBatches:
 
 class CliqueSampler:
     """CliqueMining batches (:class:`vpr_nb.mining.CliqueBatchMaker`) over the images with a place id.
-    Cities are kept apart (their UTM is offset by 10 000 km per city), so a clique never spans two cities.
+    Cities are kept apart (their UTM is offset by 10 000 km per city), so a clique never spans two cities,
+    and the similar groups of a batch are drawn within the anchor's city (``regions``), as published.
     ``state_dict`` holds the group descriptors, so a resumed run mines the same batches."""
 
     def __init__(self, images, groups, utm, regions, s: SourceConfig, num_batches: int, places: int):
@@ -805,7 +806,8 @@ class CliqueSampler:
         self.sub = sub
         self.maker = CliqueBatchMaker(_subset(images, sub), u, gid.reshape(-1), places, num_batches,
                                       images_per_place=s.images_per_place, same_place_threshold=s.same_place_threshold,
-                                      similar_groups=s.similar_groups, refresh_every=s.refresh_every)
+                                      similar_groups=s.similar_groups, refresh_every=s.refresh_every,
+                                      regions=rid.reshape(-1))   # similar groups within the anchor's city, as published
 
     def __call__(self, model, epoch, rng):
         return self.sub[self.maker(model, epoch, rng)]
