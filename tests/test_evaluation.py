@@ -114,3 +114,18 @@ def test_bad_inputs_raise_clear_errors(call, match):
         warnings.simplefilter("ignore")
         with pytest.raises(ValueError, match=match):
             call()
+
+
+def test_recall_row_and_mean_cosine():
+    from types import SimpleNamespace
+
+    from vpr_nb.evaluation import mean_pairwise_cosine, recall_row
+    rng = np.random.default_rng(0)
+    db = rng.normal(size=(6, 4)).astype(np.float32)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    split = SimpleNamespace(db_utm=np.arange(12.0).reshape(6, 2) * 10, q_utm=np.arange(12.0).reshape(6, 2) * 10,
+                            pos_radius=1.0)
+    row = recall_row(db, db, split, (1, 5))
+    assert row == {"R@1": 1.0, "R@5": 1.0, "dim": 4, "mean cosine": round(mean_pairwise_cosine(db), 4)}
+    sims = db @ db.T
+    assert mean_pairwise_cosine(db) == pytest.approx(sims[~np.eye(6, dtype=bool)].mean(), abs=1e-6)

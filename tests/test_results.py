@@ -76,3 +76,12 @@ def test_mean_std_and_paired_verdict():
         results.paired_verdict([0.5], [0.4, 0.3])
     with pytest.raises(ValueError, match="at least one"):
         results.mean_std([])
+
+
+def test_print_table(capsys):
+    results.print_table({"A": {"R@1": "0.500"}, "B": {"R@1": "0.600"}}, "title", label_width=5, col_width=7)
+    assert capsys.readouterr().out.splitlines() == ["title", "           A      B", "  R@1  0.500  0.600"]
+    with pytest.raises(ValueError, match="missing"):
+        results.print_table({"A": {"R@1": "1"}, "B": {}}, "t")
+    with pytest.raises(ValueError, match="non-empty"):
+        results.print_table({}, "t")

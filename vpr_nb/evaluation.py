@@ -199,3 +199,31 @@ def evaluate_model(model: torch.nn.Module, split, ns: Sequence[int] = (1, 5, 10,
     db = compute_descriptors(model, split.db_images, batch_size)
     q = compute_descriptors(model, split.q_images, batch_size)
     return evaluate_descriptors(db, q, split.db_utm, split.q_utm, split.pos_radius, ns, no_positive)
+
+
+def mean_pairwise_cosine(descriptors) -> float:
+    """Mean cosine similarity over all pairs of distinct rows of L2-normalised ``descriptors`` (N ≥ 2).
+
+    Uses ``‖Σ dᵢ‖² = N + Σ_{i≠j} dᵢ·dⱼ``, so it costs O(N·D). Close to 1: every image gets nearly the
+    same descriptor (a collapsed embedding); a healthy VPR embedding sits far below.
+    """
+    d = np.asarray(descriptors, dtype=np.float64)
+    if d.ndim != 2 or len(d) < 2:
+        raise ValueError(f"descriptors must be an (N >= 2, D) array, got shape {d.shape}")
+    n = len(d)
+    s = d.sum(axis=0)
+    return float((s @ s - (d * d).sum()) / (n * (n - 1)))
+
+
+def recall_row(db_desc, q_desc, split, ns: Sequence[int] = (1, 5, 10)) -> dict:
+    """One row of a results table: Recall@N on ``split`` (4 decimals), the descriptor dimension and the
+    mean pairwise cosine of the database descriptors (training health, notebook 02)."""
+    rec = evaluate_descriptors(db_desc, q_desc, split.db_utm, split.q_utm, split.pos_radius, ns)
+    db = as_float_matrix(db_desc, "db_desc")
+    return {**{f"R@{n}": round(float(rec[n]), 4) for n in ns}, "dim": int(db.shape[1]),
+            "mean cosine": round(mean_pairwise_cosine(db), 4)}
+
+
+def model_recall_row(model: torch.nn.Module, split, ns: Sequence[int] = (1, 5, 10)) -> dict:
+    """:func:`recall_row` of ``model``'s descriptors on ``split``."""
+    return recall_row(compute_descriptors(model, split.db_images), compute_descriptors(model, split.q_images), split, ns)

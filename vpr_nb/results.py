@@ -116,3 +116,19 @@ def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B") -> str:
     if abs(m) > 2 * se:
         return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): {a if m > 0 else b} is better"
     return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): within 2 SE, no verdict"
+
+
+def print_table(rows: Mapping, title: str, label_width: int = 22, col_width: int = 24) -> None:
+    """Print ``rows`` = {column name: {metric: formatted value}} as a text table, one metric per line
+    (every column must have the metrics of the first)."""
+    if not isinstance(rows, Mapping) or not rows:
+        raise ValueError("rows must be a non-empty dict {column name: {metric: value}}")
+    names = list(rows)
+    metrics = list(rows[names[0]])
+    missing = {n: sorted(set(metrics) - set(rows[n])) for n in names if set(metrics) - set(rows[n])}
+    if missing:
+        raise ValueError(f"every column needs the metrics of the first; missing: {missing}")
+    print(title)
+    print(f"{'':>{label_width}}" + "".join(f"{n:>{col_width}}" for n in names))
+    for metric in metrics:
+        print(f"{metric:>{label_width}}" + "".join(f"{rows[n][metric]:>{col_width}}" for n in names))

@@ -32,7 +32,8 @@ from tqdm.auto import tqdm
 
 from . import losses as L
 from ._checks import check_int, check_positive
-from .evaluation import as_image_array, compute_descriptors, evaluate_descriptors, images_to_tensor
+from .evaluation import (as_image_array, compute_descriptors, evaluate_descriptors, images_to_tensor,
+                         mean_pairwise_cosine)
 from .mining import mine_triplets
 
 TRIPLET_LOSSES = ("triplet", "weighted", "ce", "dw")
@@ -82,20 +83,6 @@ class TrainConfig:
         self.ns = tuple(check_int(n, "ns entry") for n in self.ns)
         if not self.ns:
             raise ValueError("ns must list at least one N for Recall@N, e.g. (1, 5, 10)")
-
-
-def mean_pairwise_cosine(descriptors) -> float:
-    """Mean cosine similarity over all pairs of distinct rows of L2-normalised ``descriptors`` (N ≥ 2).
-
-    Uses ``‖Σ dᵢ‖² = N + Σ_{i≠j} dᵢ·dⱼ``, so it costs O(N·D). Close to 1: every image gets nearly the
-    same descriptor (a collapsed embedding); a healthy VPR embedding sits far below.
-    """
-    d = np.asarray(descriptors, dtype=np.float64)
-    if d.ndim != 2 or len(d) < 2:
-        raise ValueError(f"descriptors must be an (N >= 2, D) array, got shape {d.shape}")
-    n = len(d)
-    s = d.sum(axis=0)
-    return float((s @ s - (d * d).sum()) / (n * (n - 1)))
 
 
 @dataclass

@@ -53,8 +53,8 @@ import torch.nn.functional as F
 import vpr_nb
 from vpr_nb import plots, results
 from vpr_nb.aggregation import GeM, NetVLAD, kmeans_centroids, sample_local_descriptors
-from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, evaluate_model, images_to_tensor,
-                               raw_pixel_descriptors)
+from vpr_nb.evaluation import (compute_descriptors, evaluate_model, images_to_tensor,
+                               model_recall_row, raw_pixel_descriptors, recall_row)
 from vpr_nb.models import build_model, init_netvlad
 from vpr_nb.pretrain import card, course_backbone
 from vpr_nb.report import record
@@ -335,14 +335,12 @@ def untrained_netvlad(relu, seed=0):
     return model
 
 
-def test_row(db, q):
-    rec = evaluate_descriptors(db, q, test_split.db_utm, test_split.q_utm, test_split.pos_radius, NS)
-    return {**{f"R@{n}": round(float(rec[n]), 4) for n in NS}, "dim": int(db.shape[1]),
-            "mean cosine": round(mean_pairwise_cosine(db), 4)}
+def test_row(db, q):          # Recall@N, dim and mean cosine on the test split
+    return recall_row(db, q, test_split, NS)
 
 
 def model_row(model):
-    return test_row(compute_descriptors(model, test_split.db_images), compute_descriptors(model, test_split.q_images))
+    return model_recall_row(model, test_split, NS)
 
 
 vpr_nb.seed_everything(0)

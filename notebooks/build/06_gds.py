@@ -280,11 +280,7 @@ def with_eq4(rows):
     return out
 
 def show_table(rows, title):
-    names = list(rows)
-    print(title)
-    print(f"{'':>24}" + "".join(f"{n:>28}" for n in names))
-    for metric in rows[names[0]]:
-        print(f"{metric:>24}" + "".join(f"{rows[n][metric]:>28}" for n in names))
+    results.print_table(rows, title, label_width=24, col_width=28)
 
 fmt = {name: {k: f"{v:.3f}" for k, v in r.items()} for name, r in with_eq4(live).items()}
 show_table(fmt, f"live, CI profile: route test split, fine-tuning seed {RUN['seeds'][0]}, "

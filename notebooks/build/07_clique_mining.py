@@ -400,11 +400,7 @@ print(f"{len(SAMPLERS)} training runs in {train_seconds:.1f} s")
 """),
     ("code", r"""
 def show_table(rows, title):
-    names = list(rows)
-    print(title)
-    print(f"{'':>22}" + "".join(f"{n:>24}" for n in names))
-    for metric in rows[names[0]]:
-        print(f"{metric:>22}" + "".join(f"{rows[n][metric]:>24}" for n in names))
+    results.print_table(rows, title, label_width=22, col_width=24)
 
 cells = {n: {k: f"{v:.3f}" for k, v in r.items()} for n, r in {**fixed, **live}.items()}
 show_table(cells, f"live, CI profile: route test split, seed {RUN['seeds'][0]}, {RUN['train']['epochs']} epochs")
