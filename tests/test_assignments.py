@@ -1,6 +1,5 @@
 """Student versions and grading with nbgrader's markers (vpr_nb.assignments)."""
 import copy
-import sys
 from pathlib import Path
 
 import nbformat
@@ -10,8 +9,23 @@ from vpr_nb.assignments import (BEGIN_HIDDEN, BEGIN_SOLUTION, CODE_STUB, exercis
                                 student_version)
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "notebooks" / "build"))
-from _nb import build  # noqa: E402
+
+
+def build(cells) -> nbformat.NotebookNode:
+    """A notebook from ``(kind, source[, grade_id[, points]])`` tuples; kinds ``md``, ``code``, ``solution``
+    and ``tests`` (the last two get nbgrader's cell metadata, as the course notebooks carry it)."""
+    nb = nbformat.v4.new_notebook()
+    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    for kind, src, *grading in cells:
+        cell = nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
+        if kind == "solution":
+            cell.metadata["nbgrader"] = {"solution": True, "grade": False, "locked": False,
+                                         "grade_id": grading[0], "schema_version": 3}
+        elif kind == "tests":
+            cell.metadata["nbgrader"] = {"solution": False, "grade": True, "locked": True,
+                                         "grade_id": f"{grading[0]}-tests", "points": grading[1], "schema_version": 3}
+        nb.cells.append(cell)
+    return nb
 
 SOLUTION = """def square(x):
     ### BEGIN SOLUTION
@@ -24,8 +38,8 @@ assert square(-2) == 4
 
 
 def _tiny(tmp_path):
-    nb = build("99_tiny", [("md", "# tiny"), ("code", "import math"), ("solution", SOLUTION, "ex-square"),
-                           ("tests", TESTS, "ex-square", 2), ("md", "done")])
+    nb = build([("md", "# tiny"), ("code", "import math"), ("solution", SOLUTION, "ex-square"),
+           ("tests", TESTS, "ex-square", 2), ("md", "done")])
     path = tmp_path / "instructor" / "99_tiny.ipynb"
     path.parent.mkdir()
     nbformat.write(nb, path)
@@ -62,7 +76,7 @@ def test_grades_instructor_full_student_zero_pasted_back_full(tmp_path):
 
 
 def test_malformed_markers_and_missing_files(tmp_path):
-    nb = build("98_bad", [("solution", "### BEGIN SOLUTION\nx = 1", "ex-bad")])
+    nb = build([("solution", "### BEGIN SOLUTION\nx = 1", "ex-bad")])
     with pytest.raises(ValueError, match="without"):
         student_version(nb, "98_bad")
     with pytest.raises(FileNotFoundError):

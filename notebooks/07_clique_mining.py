@@ -1,34 +1,41 @@
-"""Builder of notebooks/07_clique_mining.ipynb.
+# ---
+# jupyter:
+#   jupytext:
+#     cell_metadata_filter: tags,nbgrader,-all
+#     formats: ipynb,py:percent
+#     notebook_metadata_filter: kernelspec,jupytext,-all
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
 
-Run ``python notebooks/build/07_clique_mining.py`` to (re)write the notebook from the cell sources below,
-then execute it in place with nbconvert (see the Makefile); cells are assembled by ``_nb.py``.
-"""
-from _nb import write
+# %% [markdown]
+# # 07 · CliqueMining: batches of places that are close, alike, and apart
+#
+# **Aim.** Notebook 06 showed that a trained model confuses the right frame with one a few metres away: it is
+# *close, but not there*. CliqueMining (Izquierdo & Civera, ECCV 2024) changes only *which images go into a
+# training batch*: places of one city that look alike and lie just beyond the same-place threshold, so that the
+# Multi-Similarity loss has to separate them. You will
+#
+# * write the two ingredients (similarity-weighted group sampling within the anchor's city, and the geographic
+#   clique graph, here with a heading test) and check the invariants of `vpr_nb.mining.clique_batches`;
+# * measure what the batches contain: how far apart and how alike their places are, against random-place
+#   batches with the *same* place definition (the GSV-Cities baseline);
+# * run the paper's protocol at course scale: the pretrained course backbone (last block trainable) + SALAD +
+#   MS loss, each step half random places and half clique places, on a `route` world tuned so that most
+#   failures are near misses; and compare the samplers first by the **mis-ordering probability** at small
+#   distances and the top-k order (notebook 06), then by Recall@1, on 5 paired seeds.
 
-NAME = "07_clique_mining"
-
-CELLS = [
-    ("md", r"""
-# 07 · CliqueMining: batches of places that are close, alike, and apart
-
-**Aim.** Notebook 06 showed that a trained model confuses the right frame with one a few metres away: it is
-*close, but not there*. CliqueMining (Izquierdo & Civera, ECCV 2024) changes only *which images go into a
-training batch*: places of one city that look alike and lie just beyond the same-place threshold, so that the
-Multi-Similarity loss has to separate them. You will
-
-* write the two ingredients (similarity-weighted group sampling within the anchor's city, and the geographic
-  clique graph, here with a heading test) and check the invariants of `vpr_nb.mining.clique_batches`;
-* measure what the batches contain: how far apart and how alike their places are, against random-place
-  batches with the *same* place definition (the GSV-Cities baseline);
-* run the paper's protocol at course scale: the pretrained course backbone (last block trainable) + SALAD +
-  MS loss, each step half random places and half clique places, on a `route` world tuned so that most
-  failures are near misses; and compare the samplers first by the **mis-ordering probability** at small
-  distances and the top-k order (notebook 06), then by Recall@1, on 5 paired seeds.
-"""),
-    ("code", r"""
+# %% tags=["parameters"]
 PROFILE = "ci"  # "ci": 1 seed, short budget (what CI checks); "reproduce": 5 paired seeds, full budget
-""", ["parameters"]),
-    ("code", r"""
+
+# %%
 import time
 
 import matplotlib.pyplot as plt
@@ -71,63 +78,63 @@ torch.set_num_threads(1)     # same floats on every machine (and faster on a sha
 vpr_nb.seed_everything(0)
 print(f"profile {PROFILE}: seeds {RUN['seeds']}, {RUN['train']['epochs']} epochs of "
       f"{EXPERIMENT['batch']['batches_per_epoch']} batches of (8 random + 8 clique) places x 4 images")
-"""),
-    ("md", r"""
-## Theory
 
-The images carry geotags $g_i$, a city (region) and a place-group id (MSLS's `unique_cluster`). One clique
-batch of $P$ places $\times$ $K$ images is built as in the authors' `create_dataset_part`:
+# %% [markdown]
+# ## Theory
+#
+# The images carry geotags $g_i$, a city (region) and a place-group id (MSLS's `unique_cluster`). One clique
+# batch of $P$ places $\times$ $K$ images is built as in the authors' `create_dataset_part`:
+#
+# 1. **City and anchor.** Draw a city with probability proportional to its number of groups (one not used yet
+#    in this batch) and an anchor group $a$ uniformly in it. Every group $j$ is described by the descriptor
+#    $x_j$ of one random image of it, computed **once, offline, with a pretrained model** (the paper: the
+#    GSV-Cities SALAD; here: the frozen course backbone + GeM).
+# 2. **Similar groups of the same city.** With $d_j = \lVert x_a - x_j \rVert_2$ over the groups $j$ of the
+#    anchor's city, draw $S = 15$ groups without replacement with
+#
+# $$P(j) \propto w_j = \max_k d_k - d_j \quad (j \ne a), \tag{1}$$
+#
+#    so groups of that city that look like the anchor are likely (linear weights: the farthest never comes).
+# 3. **Graph.** Over all images of the $S + 1$ groups, join two images when they are closer than the
+#    same-place threshold $\tau$ (25 m in the paper) and, an option the paper does not need on MSLS, face the
+#    same way ($|\Delta\theta| \le \theta_{\max}$):
+#
+# $$E = \{(i, j) : \lVert g_i - g_j \rVert_2 < \tau,\ |\theta_i - \theta_j| \le \theta_{\max}\}. \tag{2}$$
+#
+# 4. **Places = cliques.** A clique $C$ with $|C| \ge K$ is a set of images pairwise closer than $\tau$; keep
+#    $K$ random members as one place, then delete them **and every image within $\tau$ of them**,
+#    $V \leftarrow V \setminus (C_K \cup N_\tau(C_K))$, so every later place is $\ge \tau$ from every chosen
+#    image. Repeat until $P$ places or no clique is left; then a new city.
+#
+# The paper trains each step on **two halves**, 30 random GSV-Cities places and 30 clique places of MSLS, with
+# one **Multi-Similarity loss** per half (Wang et al., CVPR 2019, Eq. 6), summed; $S_{ij}$ is the cosine
+# similarity, $\mathcal P_i$/$\mathcal N_i$ the mined positives/negatives of anchor $i$, $\alpha=1$, $\beta=50$,
+# $\lambda=0$:
+#
+# $$\mathcal L_{\text{half}} = \frac1{PK}\sum_i \Big[\frac1\alpha \log\big(1 + \sum_{p \in \mathcal P_i} e^{-\alpha (S_{ip} - \lambda)}\big) + \frac1\beta \log\big(1 + \sum_{n \in \mathcal N_i} e^{\beta (S_{in} - \lambda)}\big)\Big], \qquad \mathcal L = \mathcal L_{\text{random}} + \mathcal L_{\text{clique}}. \tag{3}$$
+#
+# The **baseline** replaces the clique half with a second random half (same places, same losses, same steps).
+# Both halves use the same place definition, and it must match the evaluation: a place must fit inside the
+# positive radius (on the route: 2 consecutive frames, $\le$ `pos_radius`), and on the city the images of a
+# place must face the same way (spot and heading), or the loss pulls together views that share no content.
+#
+# **What should change.** The clique half puts images $\tau$ apart into the same loss as negatives. Notebook
+# 06's mis-ordering probability $p(d_1, d_2) = P(D(d_2) < D(d_1))$ at small distances should drop. On the tuned
+# route below, positives are 0 and 2.5 m away and the nearest negatives 5 m: $p(0, 10)$ compares the right frame
+# with a negative 10 m away, $p(5, 10)$ two negatives, i.e. the geographic order inside the top-k that GDS is
+# about. Recall@1 follows only if the model already finds the right *area*, so that its failures are near
+# misses.
 
-1. **City and anchor.** Draw a city with probability proportional to its number of groups (one not used yet
-   in this batch) and an anchor group $a$ uniformly in it. Every group $j$ is described by the descriptor
-   $x_j$ of one random image of it, computed **once, offline, with a pretrained model** (the paper: the
-   GSV-Cities SALAD; here: the frozen course backbone + GeM).
-2. **Similar groups of the same city.** With $d_j = \lVert x_a - x_j \rVert_2$ over the groups $j$ of the
-   anchor's city, draw $S = 15$ groups without replacement with
+# %% [markdown]
+# ## The worlds: a route where failures are near misses
+#
+# The default tiny `route` (frames 5 m apart, 10 facade types) makes a pretrained model fail mostly *far
+# away*: aliased facades, not neighbouring frames. CliqueMining cannot help there. We tune the route through
+# `make_dataset` overrides (more facade types and colour variation, frames 2.5 m apart, places of 2 frames)
+# until most failures of the frozen course backbone land within 4 frames of the right one. A failure is a
+# **near miss** when the top-1 image is not a positive but lies within 4 frames of the query.
 
-$$P(j) \propto w_j = \max_k d_k - d_j \quad (j \ne a), \tag{1}$$
-
-   so groups of that city that look like the anchor are likely (linear weights: the farthest never comes).
-3. **Graph.** Over all images of the $S + 1$ groups, join two images when they are closer than the
-   same-place threshold $\tau$ (25 m in the paper) and, an option the paper does not need on MSLS, face the
-   same way ($|\Delta\theta| \le \theta_{\max}$):
-
-$$E = \{(i, j) : \lVert g_i - g_j \rVert_2 < \tau,\ |\theta_i - \theta_j| \le \theta_{\max}\}. \tag{2}$$
-
-4. **Places = cliques.** A clique $C$ with $|C| \ge K$ is a set of images pairwise closer than $\tau$; keep
-   $K$ random members as one place, then delete them **and every image within $\tau$ of them**,
-   $V \leftarrow V \setminus (C_K \cup N_\tau(C_K))$, so every later place is $\ge \tau$ from every chosen
-   image. Repeat until $P$ places or no clique is left; then a new city.
-
-The paper trains each step on **two halves**, 30 random GSV-Cities places and 30 clique places of MSLS, with
-one **Multi-Similarity loss** per half (Wang et al., CVPR 2019, Eq. 6), summed; $S_{ij}$ is the cosine
-similarity, $\mathcal P_i$/$\mathcal N_i$ the mined positives/negatives of anchor $i$, $\alpha=1$, $\beta=50$,
-$\lambda=0$:
-
-$$\mathcal L_{\text{half}} = \frac1{PK}\sum_i \Big[\frac1\alpha \log\big(1 + \sum_{p \in \mathcal P_i} e^{-\alpha (S_{ip} - \lambda)}\big) + \frac1\beta \log\big(1 + \sum_{n \in \mathcal N_i} e^{\beta (S_{in} - \lambda)}\big)\Big], \qquad \mathcal L = \mathcal L_{\text{random}} + \mathcal L_{\text{clique}}. \tag{3}$$
-
-The **baseline** replaces the clique half with a second random half (same places, same losses, same steps).
-Both halves use the same place definition, and it must match the evaluation: a place must fit inside the
-positive radius (on the route: 2 consecutive frames, $\le$ `pos_radius`), and on the city the images of a
-place must face the same way (spot and heading), or the loss pulls together views that share no content.
-
-**What should change.** The clique half puts images $\tau$ apart into the same loss as negatives. Notebook
-06's mis-ordering probability $p(d_1, d_2) = P(D(d_2) < D(d_1))$ at small distances should drop. On the tuned
-route below, positives are 0 and 2.5 m away and the nearest negatives 5 m: $p(0, 10)$ compares the right frame
-with a negative 10 m away, $p(5, 10)$ two negatives, i.e. the geographic order inside the top-k that GDS is
-about. Recall@1 follows only if the model already finds the right *area*, so that its failures are near
-misses.
-"""),
-    ("md", r"""
-## The worlds: a route where failures are near misses
-
-The default tiny `route` (frames 5 m apart, 10 facade types) makes a pretrained model fail mostly *far
-away*: aliased facades, not neighbouring frames. CliqueMining cannot help there. We tune the route through
-`make_dataset` overrides (more facade types and colour variation, frames 2.5 m apart, places of 2 frames)
-until most failures of the frozen course backbone land within 4 frames of the right one. A failure is a
-**near miss** when the top-1 image is not a positive but lies within 4 frames of the query.
-"""),
-    ("code", r"""
+# %%
 # NBVAL_IGNORE_OUTPUT
 # (generation time varies)
 t0 = time.perf_counter()
@@ -136,8 +143,8 @@ ds = make_dataset(w["preset"], seed=w["seed"], size=w["size"], **w["overrides"])
 default_route = make_dataset("route", seed=0, splits=("test",))
 city = make_dataset("city", seed=0, splits=("train",))
 print(f"generated in {time.perf_counter() - t0:.1f} s")
-"""),
-    ("code", r"""
+
+# %%
 frozen = build_model(course_backbone(trainable_blocks=0), "gem")
 
 def near_miss_share(db, q, split):
@@ -156,23 +163,24 @@ for label, world in (("default route (5 m frames)", default_route), ("tuned rout
         print(f"{label:>34} {name:>16} {rec[1]:>6.3f} {rec[5]:>6.3f} {near_miss_share(db, q, te):>16.3f}")
 te, tr = ds.test, ds.train
 print(te, tr, sep="\n")
-"""),
-    ("md", r"""
-## Place definitions and the training sets
 
-Two groupings, as on MSLS: **places** (what a batch slot holds; the random half draws them) and
-**clusters** (MSLS's `unique_cluster`, what Eq. (1) draws; a clique batch takes its places as cliques of the
-images of 16 clusters).
 
-* **Route**: a place is 2 consecutive frames (database + query images, 4 images), so it fits inside the
-  ±1-frame positive radius; the clique threshold is the positive radius, so a clique is exactly such a
-  place. A cluster is 10 frames (25 m, the paper's same-place threshold). The whole route is one city.
-* **City**: a place is **two neighbouring spots and one heading quadrant** (the database photographs each
-  spot in 4 headings 90° apart; a query takes one of them); a cluster is 5 neighbouring spots and one
-  heading quadrant; the clique graph joins only images whose headings differ by at most 30°. Random-place
-  batches draw among the places with $\ge 4$ images.
-"""),
-    ("code", r"""
+# %% [markdown]
+# ## Place definitions and the training sets
+#
+# Two groupings, as on MSLS: **places** (what a batch slot holds; the random half draws them) and
+# **clusters** (MSLS's `unique_cluster`, what Eq. (1) draws; a clique batch takes its places as cliques of the
+# images of 16 clusters).
+#
+# * **Route**: a place is 2 consecutive frames (database + query images, 4 images), so it fits inside the
+#   ±1-frame positive radius; the clique threshold is the positive radius, so a clique is exactly such a
+#   place. A cluster is 10 frames (25 m, the paper's same-place threshold). The whole route is one city.
+# * **City**: a place is **two neighbouring spots and one heading quadrant** (the database photographs each
+#   spot in 4 headings 90° apart; a query takes one of them); a cluster is 5 neighbouring spots and one
+#   heading quadrant; the clique graph joins only images whose headings differ by at most 30°. Random-place
+#   batches draw among the places with $\ge 4$ images.
+
+# %%
 def training_set(split, groups, clusters):
     compact = lambda g: np.unique(g, return_inverse=True)[1].reshape(-1)
     return dict(images=np.concatenate([split.db_images, split.q_images]),
@@ -193,15 +201,16 @@ for p, d in data.items():
     sizes = np.bincount(d["groups"])
     print(f"{p}: {len(d['utm'])} training images in {len(sizes)} places (median {np.median(sizes):.0f} images, "
           f"{np.sum(sizes >= 4)} with >= 4) and {d['clusters'].max() + 1} clusters; threshold {THRESHOLD[p]:.3f} m")
-"""),
-    ("md", r"""
-## Build it: Eq. (1) and the batch invariants
 
-The weights of Eq. (1) in three lines, and a checker for what Eqs. (2) and (4) guarantee: every place
-pairwise $< \tau$, different places $\ge \tau$ apart, no image twice. `vpr_nb.mining.clique_batches` satisfies
-them; random-place batches do not keep places apart.
-"""),
-    ("code", r"""
+
+# %% [markdown]
+# ## Build it: Eq. (1) and the batch invariants
+#
+# The weights of Eq. (1) in three lines, and a checker for what Eqs. (2) and (4) guarantee: every place
+# pairwise $< \tau$, different places $\ge \tau$ apart, no image twice. `vpr_nb.mining.clique_batches` satisfies
+# them; random-place batches do not keep places apart.
+
+# %%
 def similar_group_probs(x, anchor):                                  # Eq. (1)
     d = np.linalg.norm(x - x[anchor], axis=1)
     w = d.max() - d
@@ -235,17 +244,18 @@ def heading_spread(b, heading):
     return float(np.abs((heading[b] - heading[b][..., :1] + 180) % 360 - 180).max())
 print(f"largest heading difference inside a place: clique {heading_spread(cb, d['heading']):.1f} deg, "
       f"random {heading_spread(rb, d['heading']):.1f} deg")
-"""),
-    ("md", r"""
-## What the batches contain
 
-For every pair of places of a batch: the distance between their centres and the cosine similarity of their
-descriptors (mean of the place's frozen-backbone descriptors; `vpr_nb.mining.batch_statistics`), median over
-20 batches of 16 places; and for every image, the distance to the nearest image of another place of its
-batch (its hardest geographic negative). CliqueMining's point is that its places are **closer and more alike** than random
-ones; `tests/test_mining.py` checks the same on a multi-city world.
-"""),
-    ("code", r"""
+
+# %% [markdown]
+# ## What the batches contain
+#
+# For every pair of places of a batch: the distance between their centres and the cosine similarity of their
+# descriptors (mean of the place's frozen-backbone descriptors; `vpr_nb.mining.batch_statistics`), median over
+# 20 batches of 16 places; and for every image, the distance to the nearest image of another place of its
+# batch (its hardest geographic negative). CliqueMining's point is that its places are **closer and more alike** than random
+# ones; `tests/test_mining.py` checks the same on a multi-city world.
+
+# %%
 def nearest_other_place(batches, utm):
     # for every image of every batch: the distance to the nearest image of another place of its batch
     out = []
@@ -276,15 +286,15 @@ for p in data:
         pc, nc = positive_vs_hardest_negative(bb, image_desc[p])
         print(f"{p:>6} {name:>8} {s['median place distance (m)']:>13.1f} m {s['median place similarity']:>17.3f} "
               f"{np.median(nearest_other_place(bb, data[p]['utm'])):>15.1f} m {np.median(pc):>13.3f} {np.median(nc):>21.3f}")
-"""),
-    ("md", r"""
-## The graph, its cliques and a batch on the map
 
-The images of the groups used by one city batch, the edges of Eq. (2), and the places the batch took (one
-colour each). Right: for every image of a batch, the distance to the nearest image of *another* place of
-the batch, its hardest geographic negative, for clique and random batches (medians in the legend).
-"""),
-    ("code", r"""
+# %% [markdown]
+# ## The graph, its cliques and a batch on the map
+#
+# The images of the groups used by one city batch, the edges of Eq. (2), and the places the batch took (one
+# colour each). Right: for every image of a batch, the distance to the nearest image of *another* place of
+# the batch, its hardest geographic negative, for clique and random batches (medians in the legend).
+
+# %%
 batch = cb[0]
 pool = np.flatnonzero(np.isin(d["clusters"], np.unique(d["clusters"][batch])))
 ij = cKDTree(d["utm"][pool]).query_pairs(THRESHOLD["city"] - 1e-9, output_type="ndarray")
@@ -313,20 +323,21 @@ axes[1].set(xlabel="distance to the nearest image of another place (m, clipped a
 axes[1].legend()
 plt.tight_layout()
 plt.show()
-"""),
-    ("md", r"""
-## Experiment: random vs random + clique halves, the paper's protocol at course scale
 
-Model: `course_backbone(trainable_blocks=1)` (only the final 1×1 projection and the token layer train, as the
-paper trains DINOv2's last blocks) + SALAD (16 clusters × 32 + 32-D token). Each step: 8 random places + 8
-places of the second half, 4 images each, one MS loss per half (Eq. 3). **random**: the second half is random
-places too; **clique**: the second half is a clique batch (Eqs. 1–2, group descriptors from the frozen
-backbone, computed once). AdamW with linear decay 1 → 0.2 (SALAD's schedule), best validation R@1 kept. Same
-seeds, same number of steps; only the second half differs. Evaluation on the route's test split: first the
-mis-ordering probabilities of notebook 06 ($p(5, 10)$ and $p(0, 10)$, see the theory), the top-5 order
-agreement, then R@1/R@5, the near-miss share and the GDS slope (per 10 m).
-"""),
-    ("code", r"""
+
+# %% [markdown]
+# ## Experiment: random vs random + clique halves, the paper's protocol at course scale
+#
+# Model: `course_backbone(trainable_blocks=1)` (only the final 1×1 projection and the token layer train, as the
+# paper trains DINOv2's last blocks) + SALAD (16 clusters × 32 + 32-D token). Each step: 8 random places + 8
+# places of the second half, 4 images each, one MS loss per half (Eq. 3). **random**: the second half is random
+# places too; **clique**: the second half is a clique batch (Eqs. 1–2, group descriptors from the frozen
+# backbone, computed once). AdamW with linear decay 1 → 0.2 (SALAD's schedule), best validation R@1 kept. Same
+# seeds, same number of steps; only the second half differs. Evaluation on the route's test split: first the
+# mis-ordering probabilities of notebook 06 ($p(5, 10)$ and $p(0, 10)$, see the theory), the top-5 order
+# agreement, then R@1/R@5, the near-miss share and the GDS slope (per 10 m).
+
+# %%
 class TwoHalvesSource(PlaceBatchSource):
     # the paper's step: the first `split` places get one MS loss, the others another; the losses are summed
     def __init__(self, images, make_batches, split):
@@ -393,19 +404,20 @@ for sampler in SAMPLERS:
     print(f"{sampler}: validation R@1 per epoch", [round(r, 3) for r in histories[sampler].recalls(1)])
     print(f"{' ' * len(sampler)}  mean pairwise cosine of the validation descriptors per epoch",
           [round(c, 3) for c in histories[sampler].mean_cosines])
-"""),
-    ("code", r"""
+
+# %%
 # NBVAL_IGNORE_OUTPUT
 print(f"{len(SAMPLERS)} training runs in {train_seconds:.1f} s")
-"""),
-    ("code", r"""
+
+
+# %%
 def show_table(rows, title):
     results.print_table(rows, title, label_width=22, col_width=24)
 
 cells = {n: {k: f"{v:.3f}" for k, v in r.items()} for n, r in {**fixed, **live}.items()}
 show_table(cells, f"live, CI profile: route test split, seed {RUN['seeds'][0]}, {RUN['train']['epochs']} epochs")
-"""),
-    ("code", r"""
+
+# %%
 if PROFILE == "reproduce":
     per_seed = {s: [] for s in SAMPLERS}
     t_rep = time.perf_counter()
@@ -428,16 +440,17 @@ for s, cols in res["per seed"].items():
     rep[s] = {k: "{:.3f} ± {:.3f}".format(*results.mean_std(v)) for k, v in cols.items()}
 show_table(rep, f"reproduce profile, {len(seeds)} seeds (notebooks/results/07_clique_mining.json, commit "
                 f"{st['git commit']}, date {st['date']}); trained: mean ± std over seeds {seeds}")
-"""),
-    ("md", r"""
-## Verdict
 
-The paper reports that CliqueMining lifts DINOv2-SALAD from 76 to 90 R@1 on Nordland (+14 points) and
-raises the sensitivity at small distances. Below: the paired differences clique − random over the committed
-seeds (same seed, same steps), with a verdict only when the mean exceeds 2 standard errors (lower $p$ is
-better, higher order agreement and recall are better).
-"""),
-    ("code", r"""
+
+# %% [markdown]
+# ## Verdict
+#
+# The paper reports that CliqueMining lifts DINOv2-SALAD from 76 to 90 R@1 on Nordland (+14 points) and
+# raises the sensitivity at small distances. Below: the paired differences clique − random over the committed
+# seeds (same seed, same steps), with a verdict only when the mean exceeds 2 standard errors (lower $p$ is
+# better, higher order agreement and recall are better).
+
+# %%
 def paired(metric, lower_is_better=False):
     a, b = res["per seed"]["clique"][metric], res["per seed"]["random"][metric]
     diff = [x - y for x, y in zip(a, b)]
@@ -456,8 +469,8 @@ for metric, lower in (("p(5,10 m)", True), ("p(0,10 m)", True), ("top-5 pairs in
     verdict[metric] = word
     print(f"{metric:>22}: clique − random = {m:+.3f} ± {se:.3f} (SE, {len(seeds)} paired seeds): {word}")
 print("paper (Nordland, SALAD): 76 -> 90 R@1, +14 points")
-"""),
-    ("code", r"""
+
+# %%
 fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
 for ax, metric in zip(axes, ("p(5,10 m)", "top-5 pairs in order", "R@1")):
     for k, s in enumerate(SAMPLERS):
@@ -473,111 +486,107 @@ for ax, metric in zip(axes, ("p(5,10 m)", "top-5 pairs in order", "R@1")):
 axes[0].legend(fontsize=7)
 plt.tight_layout()
 plt.show()
-"""),
-    ("code", r"""
+
+# %%
 record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "epochs": RUN["train"]["epochs"],
                             "live": {s: {k: round(float(v), 4) for k, v in r.items()} for s, r in live.items()},
                             "verdict (committed)": verdict})
-"""),
-    ("md", r"""
-## Graded exercise: the hardest geographic negative of a batch
 
-Write `min_other_place_distance(batch, utm)`: the smallest geographic distance between two images that
-belong to *different* places of one batch `(P, K)`. For a clique batch it must be $\ge \tau$.
-"""),
-    ("solution", r"""
+
+# %% [markdown]
+# ## Graded exercise: the hardest geographic negative of a batch
+#
+# Write `min_other_place_distance(batch, utm)`: the smallest geographic distance between two images that
+# belong to *different* places of one batch `(P, K)`. For a clique batch it must be $\ge \tau$.
+
+# %% nbgrader={"grade": false, "grade_id": "ex-07-hardest", "locked": false, "schema_version": 3, "solution": true}
 def min_other_place_distance(batch, utm):
     ### BEGIN SOLUTION
     pts = utm[batch]                                                   # (P, K, 2)
     dist = np.linalg.norm(pts[:, None, :, None] - pts[None, :, None, :], axis=-1)   # (P, P, K, K)
     return float(dist[~np.eye(len(batch), dtype=bool)].min())
     ### END SOLUTION
-""", "ex-07-hardest"),
-    ("tests", r"""
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-07-hardest-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
 assert min_other_place_distance(cb[0], d["utm"]) >= THRESHOLD["city"]
 assert abs(min_other_place_distance(rb[0], d["utm"]) - nearest_other_place(rb[:1], d["utm"]).min()) < 1e-9
 ### BEGIN HIDDEN TESTS
 toy = np.array([[0.0, 0.0], [1.0, 0.0], [30.0, 0.0], [31.0, 0.0]])
 assert abs(min_other_place_distance(np.array([[0, 1], [2, 3]]), toy) - 29.0) < 1e-9
 ### END HIDDEN TESTS
-""", "ex-07-hardest", 1),
-    ("md", r"""
-**Reading the result** (committed reproduce profile, 500 steps per run; the CI profile above trains 50
-steps on one seed, and there both models are still below the frozen backbone).
 
-* *The batches are the published ones on the route.* With 25 m clusters and similar clusters of the same
-  city, a clique batch's places are about four times closer than a random batch's and look more alike
-  (the batch-statistics table), and the median image's hardest negative lies 5 m away, where the
-  evaluation's nearest negatives are. On the tiny city the training split is only a few hundred metres
-  across: 16 places at least 25 m apart cannot be much closer than random ones, and the table shows no
-  distance gain there, only a small similarity gain; the heading test keeps every place within 30°.
-* *The regime is the intended one.* After tuning, most failures of the frozen backbone are near misses
-  (first table), unlike on the default route; both fine-tuned models beat the frozen backbone + GeM and raw
-  pixels on R@1, R@5, $p(0, 10)$ and the top-5 order (reproduce table), so the model already finds the area.
-* *The target is missed.* R@1 and R@5 show no paired difference beyond 2 standard errors, and $p(5, 10)$ is
-  significantly *higher* (worse) with clique batches (verdict cell); only $p(0, 10)$ leans towards clique
-  batches, within 2 SE. The paper's +14 points on Nordland are not reproduced at this scale.
-* *Measured reasons.* (1) The clique half's hardest negatives look *more* alike than its positives under
-  the pretrained descriptors, by a wider margin than in random batches (median cosines, batch-statistics
-  table): frames 5 m apart at 32 × 48 pixels are nearly the same image. (2) The MS loss treats every image
-  beyond $\tau$ as an equal negative, so pushing the 5 m neighbours away sharpens the step at $\tau$ (lower
-  $p(0, 10)$) but flattens the order among negatives (higher $p(5, 10)$, smaller slope): what the loss
-  rewards is "same place or not", not the geographic order that GDS measures. (3) The SALAD head starts
-  collapsed (mean pairwise cosine of the validation descriptors near 1 in the first epoch, printed under the
-  training cell) and 500 steps are a small budget next to the paper's 8000.
-
-## Exercises
-
-1. **Refresh.** Pass no `group_descriptors` and `refresh_every=1` to `CliqueBatchMaker`: the group
-   descriptors then come from the model being trained, every epoch (not the paper's protocol). Does the
-   paired difference change?
-2. **Threshold.** On the route, try $\tau = 25$ m (the paper's value) with places of 10 frames. The MS loss
-   then pulls together images 22.5 m apart: what happens to $p(5, 10)$ and to R@1 at ±1 frame?
-3. **One city.** Call `clique_batches` on `city` without `headings`: how many places mix headings (use
-   `heading_spread`)? And on a multi-city set, drop `regions`: how far apart are the places of a batch
-   (`batch_statistics`)?
-4. **Similar groups.** Set `similar_groups=0`: cliques from the anchor group only. How many anchors does a
-   batch need, and how do the place distances change?
-5. **Speed.** Run `python bench/bench_mining.py --quick` and read `bench/reference_clique.py`: why is a new
-   networkx graph per place so much slower than one k-d tree per anchor and an alive mask, and why is the
-   cost per batch flat in the number of geotags?
-
-## Takeaways
-
-* CliqueMining only changes the batches: similar clusters of the anchor's city (Eq. 1), places as cliques
-  of the geographic graph (Eq. 2, here with a heading test), negatives just beyond the same-place threshold;
-  `clique_batches` guarantees the invariants, and on the route its places are closer and more alike than
-  random places with the same place definition (batch-statistics table).
-* The place definition must match the evaluation (places within the positive radius, one heading), and
-  the baseline must use the same one; otherwise a comparison measures the place definition, not the sampler.
-* Fine-tuning the course backbone + SALAD moves the model into the "close but not there" regime, but there
-  the paired comparison gives no R@1 verdict and a worse $p(5, 10)$ for clique batches (verdict cell): at this
-  scale, hard negatives 5 m away that look like the positives do not teach the geographic order.
-
-## References
-
-* S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place
-  Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422); code:
-  [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining).
-* S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (DINOv2-SALAD).
-  CVPR 2024. [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code:
-  [github.com/serizba/salad](https://github.com/serizba/salad) (the model CliqueMining fine-tunes).
-* A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition.*
-  Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239); code:
-  [github.com/amaralibey/gsv-cities](https://github.com/amaralibey/gsv-cities) (random-place batches, the baseline).
-* X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott. *Multi-Similarity Loss with General Pair Weighting for Deep
-  Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627); code:
-  [github.com/MalongTech/research-ms-loss](https://github.com/MalongTech/research-ms-loss),
-  [github.com/KevinMusgrave/pytorch-metric-learning](https://github.com/KevinMusgrave/pytorch-metric-learning).
-* F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
-  Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020 (the data CliqueMining mines cliques from);
-  code: [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
-* A. Hagberg, D. Schult, P. Swart. *Exploring Network Structure, Dynamics, and Function using NetworkX.*
-  SciPy 2008; code: [github.com/networkx/networkx](https://github.com/networkx/networkx) (`find_cliques`, used
-  by the original code and by `bench/reference_clique.py`).
-"""),
-]
-
-
-if __name__ == "__main__":
-    write(NAME, CELLS)
+# %% [markdown]
+# **Reading the result** (committed reproduce profile, 500 steps per run; the CI profile above trains 50
+# steps on one seed, and there both models are still below the frozen backbone).
+#
+# * *The batches are the published ones on the route.* With 25 m clusters and similar clusters of the same
+#   city, a clique batch's places are about four times closer than a random batch's and look more alike
+#   (the batch-statistics table), and the median image's hardest negative lies 5 m away, where the
+#   evaluation's nearest negatives are. On the tiny city the training split is only a few hundred metres
+#   across: 16 places at least 25 m apart cannot be much closer than random ones, and the table shows no
+#   distance gain there, only a small similarity gain; the heading test keeps every place within 30°.
+# * *The regime is the intended one.* After tuning, most failures of the frozen backbone are near misses
+#   (first table), unlike on the default route; both fine-tuned models beat the frozen backbone + GeM and raw
+#   pixels on R@1, R@5, $p(0, 10)$ and the top-5 order (reproduce table), so the model already finds the area.
+# * *The target is missed.* R@1 and R@5 show no paired difference beyond 2 standard errors, and $p(5, 10)$ is
+#   significantly *higher* (worse) with clique batches (verdict cell); only $p(0, 10)$ leans towards clique
+#   batches, within 2 SE. The paper's +14 points on Nordland are not reproduced at this scale.
+# * *Measured reasons.* (1) The clique half's hardest negatives look *more* alike than its positives under
+#   the pretrained descriptors, by a wider margin than in random batches (median cosines, batch-statistics
+#   table): frames 5 m apart at 32 × 48 pixels are nearly the same image. (2) The MS loss treats every image
+#   beyond $\tau$ as an equal negative, so pushing the 5 m neighbours away sharpens the step at $\tau$ (lower
+#   $p(0, 10)$) but flattens the order among negatives (higher $p(5, 10)$, smaller slope): what the loss
+#   rewards is "same place or not", not the geographic order that GDS measures. (3) The SALAD head starts
+#   collapsed (mean pairwise cosine of the validation descriptors near 1 in the first epoch, printed under the
+#   training cell) and 500 steps are a small budget next to the paper's 8000.
+#
+# ## Exercises
+#
+# 1. **Refresh.** Pass no `group_descriptors` and `refresh_every=1` to `CliqueBatchMaker`: the group
+#    descriptors then come from the model being trained, every epoch (not the paper's protocol). Does the
+#    paired difference change?
+# 2. **Threshold.** On the route, try $\tau = 25$ m (the paper's value) with places of 10 frames. The MS loss
+#    then pulls together images 22.5 m apart: what happens to $p(5, 10)$ and to R@1 at ±1 frame?
+# 3. **One city.** Call `clique_batches` on `city` without `headings`: how many places mix headings (use
+#    `heading_spread`)? And on a multi-city set, drop `regions`: how far apart are the places of a batch
+#    (`batch_statistics`)?
+# 4. **Similar groups.** Set `similar_groups=0`: cliques from the anchor group only. How many anchors does a
+#    batch need, and how do the place distances change?
+# 5. **Speed.** Run `python bench/bench_mining.py --quick` and read `bench/reference_clique.py`: why is a new
+#    networkx graph per place so much slower than one k-d tree per anchor and an alive mask, and why is the
+#    cost per batch flat in the number of geotags?
+#
+# ## Takeaways
+#
+# * CliqueMining only changes the batches: similar clusters of the anchor's city (Eq. 1), places as cliques
+#   of the geographic graph (Eq. 2, here with a heading test), negatives just beyond the same-place threshold;
+#   `clique_batches` guarantees the invariants, and on the route its places are closer and more alike than
+#   random places with the same place definition (batch-statistics table).
+# * The place definition must match the evaluation (places within the positive radius, one heading), and
+#   the baseline must use the same one; otherwise a comparison measures the place definition, not the sampler.
+# * Fine-tuning the course backbone + SALAD moves the model into the "close but not there" regime, but there
+#   the paired comparison gives no R@1 verdict and a worse $p(5, 10)$ for clique batches (verdict cell): at this
+#   scale, hard negatives 5 m away that look like the positives do not teach the geographic order.
+#
+# ## References
+#
+# * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place
+#   Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422); code:
+#   [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining).
+# * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (DINOv2-SALAD).
+#   CVPR 2024. [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code:
+#   [github.com/serizba/salad](https://github.com/serizba/salad) (the model CliqueMining fine-tunes).
+# * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition.*
+#   Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239); code:
+#   [github.com/amaralibey/gsv-cities](https://github.com/amaralibey/gsv-cities) (random-place batches, the baseline).
+# * X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott. *Multi-Similarity Loss with General Pair Weighting for Deep
+#   Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627); code:
+#   [github.com/MalongTech/research-ms-loss](https://github.com/MalongTech/research-ms-loss),
+#   [github.com/KevinMusgrave/pytorch-metric-learning](https://github.com/KevinMusgrave/pytorch-metric-learning).
+# * F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
+#   Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020 (the data CliqueMining mines cliques from);
+#   code: [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
+# * A. Hagberg, D. Schult, P. Swart. *Exploring Network Structure, Dynamics, and Function using NetworkX.*
+#   SciPy 2008; code: [github.com/networkx/networkx](https://github.com/networkx/networkx) (`find_cliques`, used
+#   by the original code and by `bench/reference_clique.py`).

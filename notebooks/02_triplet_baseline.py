@@ -1,40 +1,43 @@
-"""Builder of notebooks/02_triplet_baseline.ipynb.
+# ---
+# jupyter:
+#   jupytext:
+#     cell_metadata_filter: tags,nbgrader,-all
+#     formats: ipynb,py:percent
+#     notebook_metadata_filter: kernelspec,jupytext,-all
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
 
-Run ``python notebooks/build/02_triplet_baseline.py`` to (re)write the notebook from the cell
-sources below, then execute it in place with nbconvert (see the Makefile).
-"""
-import sys
-from pathlib import Path
+# %% [markdown]
+# # 02 · The triplet baseline: learning a place descriptor
+#
+# **Aim.** Train the first real VPR model of the course: a small CNN with GeM pooling, trained with the
+# **triplet margin loss** on NetVLAD-style weakly supervised triplets. You will
+#
+# * derive the triplet loss (Eq. 3 of DW-T-Loss, Xiong, Xu & Meng) in a few lines of torch and check it
+#   against `torch.nn.TripletMarginLoss` and `vpr_nb.losses.triplet_loss`;
+# * see with numbers **why mining matters**: for an untrained network, how many *random* negatives
+#   violate the margin, compared with *hard* (mined) negatives;
+# * see why, in a world with 4 views per place, the positive must face the query's way;
+# * train the recipe with `vpr_nb.training.train` from random weights on the tiny `city` world, far above
+#   the raw-pixel baseline of notebook 01, with learning curves and retrievals;
+# * learn to recognise a **collapsed** run (every image mapped to nearly the same descriptor) from two
+#   numbers the training loop records, and meet the **course backbone**: the pretrained network that
+#   notebooks 03–07 fine-tune, as the papers fine-tune ImageNet-VGG16 and DINOv2.
+#
+# This notebook trains from scratch on purpose: it teaches training. The papers never do.
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _nb import write  # noqa: E402
-
-NAME = "02_triplet_baseline"
-
-CELLS = [
-    ("md", r"""
-# 02 · The triplet baseline: learning a place descriptor
-
-**Aim.** Train the first real VPR model of the course: a small CNN with GeM pooling, trained with the
-**triplet margin loss** on NetVLAD-style weakly supervised triplets. You will
-
-* derive the triplet loss (Eq. 3 of DW-T-Loss, Xiong, Xu & Meng) in a few lines of torch and check it
-  against `torch.nn.TripletMarginLoss` and `vpr_nb.losses.triplet_loss`;
-* see with numbers **why mining matters**: for an untrained network, how many *random* negatives
-  violate the margin, compared with *hard* (mined) negatives;
-* see why, in a world with 4 views per place, the positive must face the query's way;
-* train the recipe with `vpr_nb.training.train` from random weights on the tiny `city` world, far above
-  the raw-pixel baseline of notebook 01, with learning curves and retrievals;
-* learn to recognise a **collapsed** run (every image mapped to nearly the same descriptor) from two
-  numbers the training loop records, and meet the **course backbone**: the pretrained network that
-  notebooks 03–07 fine-tune, as the papers fine-tune ImageNet-VGG16 and DINOv2.
-
-This notebook trains from scratch on purpose: it teaches training. The papers never do.
-"""),
-    ("code", r"""
+# %% tags=["parameters"]
 PROFILE = "ci"  # "ci": the recipe only (what CI checks); "reproduce": + two ablations (no heading filter, random negatives)
-""", ["parameters"]),
-    ("code", r"""
+
+# %%
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # single-threaded numpy BLAS: much faster for the many
@@ -69,60 +72,62 @@ NS = (1, 5, 10)
 vpr_nb.seed_everything(0)
 torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
 print(f"profile {PROFILE}: {EPOCHS} epochs, StepLR({STEP_SIZE}, 0.5), ablations {'on' if ABLATIONS else 'off'}")
-"""),
-    ("md", r"""
-## Theory
 
-**Triplets.** A *query* $q$, a *positive* $p$ (a database image of the same place) and a *negative*
-$n$ (a database image of another place) are mapped by the network $f_\theta$ to L2-normalised
-descriptors; $d(a, b) = \lVert f_\theta(a) - f_\theta(b) \rVert_2$. Retrieval is correct when the
-positive is nearer to the query than every negative. The **triplet margin loss** (DW-T-Loss, Eq. 3)
-asks for this with a safety margin $m$:
 
-$$L_T = \sum_{(q, p, n)} \max\big(0,\; d(q, p) - d(q, n) + m\big). \tag{3}$$
+# %% [markdown]
+# ## Theory
+#
+# **Triplets.** A *query* $q$, a *positive* $p$ (a database image of the same place) and a *negative*
+# $n$ (a database image of another place) are mapped by the network $f_\theta$ to L2-normalised
+# descriptors; $d(a, b) = \lVert f_\theta(a) - f_\theta(b) \rVert_2$. Retrieval is correct when the
+# positive is nearer to the query than every negative. The **triplet margin loss** (DW-T-Loss, Eq. 3)
+# asks for this with a safety margin $m$:
+#
+# $$L_T = \sum_{(q, p, n)} \max\big(0,\; d(q, p) - d(q, n) + m\big). \tag{3}$$
+#
+# A triplet whose negative is already farther than $d(q,p) + m$ contributes **zero loss and zero
+# gradient**; only *violating* triplets teach the network anything.
+#
+# **Weak supervision and mining (NetVLAD, Arandjelović et al. 2016, Sec. 4).** Geotags say which database
+# images are *near* the query, not which show the same content. NetVLAD therefore uses
+#
+# * *potential positives*: database images within 10 m; the positive is the one **nearest in descriptor
+#   space**, $p^* = \arg\min_{p \in \mathcal{P}_{10}(q)} d(q, p)$ (NetVLAD Eq. 7);
+# * *negatives*: images farther than 25 m (the evaluation radius), and among a random sample of them the
+#   $M$ **hardest**, i.e. nearest to the query in descriptor space, refreshed as the network changes.
+#
+# Each query then forms $M$ triplets $(q, p^*, n_j)$, $j = 1..M$. The course's synthetic city has 4
+# database headings per place (like Pittsburgh's 24 views per panorama), so a potential positive 5 m
+# away may look the other way; `max_heading_diff=45` keeps only potential positives facing the query's
+# way (more on this below).
+#
+# **GeM pooling** (Radenović, Tolias & Chum, TPAMI 2018, Eq. 3) turns the CNN's feature map, $C$ channels
+# at $n$ positions $x_{c,1..n} \ge 0$, into one $C$-dimensional descriptor, then L2-normalises it:
+#
+# $$f_c = \Big(\frac{1}{n}\sum_{i=1}^{n} x_{c,i}^{\,p}\Big)^{1/p}, \tag{GeM}$$
+#
+# with a learnable exponent $p$ (3 at the start): $p = 1$ is mean pooling, $p \to \infty$ max pooling.
+# `vpr_nb.aggregation.GeM` implements it; notebook 04 compares it with NetVLAD.
 
-A triplet whose negative is already farther than $d(q,p) + m$ contributes **zero loss and zero
-gradient**; only *violating* triplets teach the network anything.
+# %% [markdown]
+# ## Build it: Eq. (3) in plain torch
 
-**Weak supervision and mining (NetVLAD, Arandjelović et al. 2016, Sec. 4).** Geotags say which database
-images are *near* the query, not which show the same content. NetVLAD therefore uses
-
-* *potential positives*: database images within 10 m; the positive is the one **nearest in descriptor
-  space**, $p^* = \arg\min_{p \in \mathcal{P}_{10}(q)} d(q, p)$ (NetVLAD Eq. 7);
-* *negatives*: images farther than 25 m (the evaluation radius), and among a random sample of them the
-  $M$ **hardest**, i.e. nearest to the query in descriptor space, refreshed as the network changes.
-
-Each query then forms $M$ triplets $(q, p^*, n_j)$, $j = 1..M$. The course's synthetic city has 4
-database headings per place (like Pittsburgh's 24 views per panorama), so a potential positive 5 m
-away may look the other way; `max_heading_diff=45` keeps only potential positives facing the query's
-way (more on this below).
-
-**GeM pooling** (Radenović, Tolias & Chum, TPAMI 2018, Eq. 3) turns the CNN's feature map, $C$ channels
-at $n$ positions $x_{c,1..n} \ge 0$, into one $C$-dimensional descriptor, then L2-normalises it:
-
-$$f_c = \Big(\frac{1}{n}\sum_{i=1}^{n} x_{c,i}^{\,p}\Big)^{1/p}, \tag{GeM}$$
-
-with a learnable exponent $p$ (3 at the start): $p = 1$ is mean pooling, $p \to \infty$ max pooling.
-`vpr_nb.aggregation.GeM` implements it; notebook 04 compares it with NetVLAD.
-"""),
-    ("md", r"""
-## Build it: Eq. (3) in plain torch
-"""),
-    ("code", r"""
+# %%
 def triplet_loss_by_hand(q, p, n, margin):
     # q, p: (B, D); n: (B, M, D) -> sum over the B*M triplets (q_b, p_b, n_bj) of Eq. (3)
     d_qp = (q - p).pow(2).sum(-1).sqrt()                  # (B,)
     d_qn = (q[:, None, :] - n).pow(2).sum(-1).sqrt()      # (B, M)
     return torch.clamp(d_qp[:, None] - d_qn + margin, min=0).sum()
-"""),
-    ("md", r"""
-## Use `vpr_nb`: the same number three ways
 
-`torch.nn.TripletMarginLoss(margin, p=2, reduction="sum")` takes one negative per anchor, so the $M$
-triplets of each query are passed as $B \cdot M$ rows. Torch adds `eps=1e-6` inside its distance,
-hence the tolerance.
-"""),
-    ("code", r"""
+
+# %% [markdown]
+# ## Use `vpr_nb`: the same number three ways
+#
+# `torch.nn.TripletMarginLoss(margin, p=2, reduction="sum")` takes one negative per anchor, so the $M$
+# triplets of each query are passed as $B \cdot M$ rows. Torch adds `eps=1e-6` inside its distance,
+# hence the tolerance.
+
+# %%
 g = torch.Generator().manual_seed(0)
 B, D = 8, 32
 q = torch.nn.functional.normalize(torch.randn(B, D, generator=g), dim=-1)
@@ -138,33 +143,33 @@ assert torch.allclose(by_hand, torch_ref, atol=1e-4)
 print(f"Eq. (3) by hand {by_hand.item():.4f} | vpr_nb {ours.item():.4f} | torch.nn.TripletMarginLoss {torch_ref.item():.4f}")
 violating = (triplet_loss(q, p, n, MARGIN, reduction="none") > 0).float().mean().item()
 print(f"{violating:.3f} of these {B * M} random triplets violate the margin")
-"""),
-    ("md", r"""
-## The data
 
-The tiny `city` world (seed 0): the training split for triplets, validation for choosing the best
-epoch, test for the final numbers.
-"""),
-    ("code", r"""
+# %% [markdown]
+# ## The data
+#
+# The tiny `city` world (seed 0): the training split for triplets, validation for choosing the best
+# epoch, test for the final numbers.
+
+# %%
 # NBVAL_IGNORE_OUTPUT
 # (generation time varies)
 t0 = time.perf_counter()
 ds = make_dataset("city", seed=0)
 print(f"generated in {time.perf_counter() - t0:.1f} s")
-"""),
-    ("code", r"""
+
+# %%
 for split in (ds.train, ds.val, ds.test):
     print(split)
-"""),
-    ("md", r"""
-## Why mining matters
 
-Take the **untrained** network and mine triplets for every training query in two ways: $M = 5$
-negatives drawn at random beyond 25 m (`num_candidates = M`), or the 5 hardest of 300 random
-candidates (NetVLAD). Count the negatives that violate the margin, $d(q, n) < d(q, p^*) + m$: those are
-the only ones with a non-zero gradient in Eq. (3).
-"""),
-    ("code", r"""
+# %% [markdown]
+# ## Why mining matters
+#
+# Take the **untrained** network and mine triplets for every training query in two ways: $M = 5$
+# negatives drawn at random beyond 25 m (`num_candidates = M`), or the 5 hardest of 300 random
+# candidates (NetVLAD). Count the negatives that violate the margin, $d(q, n) < d(q, p^*) + m$: those are
+# the only ones with a non-zero gradient in Eq. (3).
+
+# %%
 vpr_nb.seed_everything(0)
 model = build_model("small_cnn", "gem")
 tr = ds.train
@@ -203,21 +208,22 @@ def mining_table(net, label):
 
 
 mining = mining_table(model, "untrained network")
-"""),
-    ("md", r"""
-At initialisation every descriptor sits close to every other (a random network maps all street
-views to nearly the same vector), so almost any negative is within the margin and even random
-triplets carry loss, though hard ones carry more (the ratio above). The difference grows with
-training: once the network separates places, random negatives are almost all beyond the margin and
-give no gradient, while mined ones remain the look-alike places it still confuses. The same table for
-the trained network follows the training below.
 
-### Which way does the positive face?
 
-Without the heading filter, $p^*$ is the potential positive nearest in descriptor space. Does it face
-the query's way? (4 database headings per place, so about 1 in 4 potential positives does.)
-"""),
-    ("code", r"""
+# %% [markdown]
+# At initialisation every descriptor sits close to every other (a random network maps all street
+# views to nearly the same vector), so almost any negative is within the margin and even random
+# triplets carry loss, though hard ones carry more (the ratio above). The difference grows with
+# training: once the network separates places, random negatives are almost all beyond the margin and
+# give no gradient, while mined ones remain the look-alike places it still confuses. The same table for
+# the trained network follows the training below.
+#
+# ### Which way does the positive face?
+#
+# Without the heading filter, $p^*$ is the potential positive nearest in descriptor space. Does it face
+# the query's way? (4 database headings per place, so about 1 in 4 potential positives does.)
+
+# %%
 def heading_diff(a, b):
     return np.abs((np.asarray(a) - np.asarray(b) + 180.0) % 360.0 - 180.0)
 
@@ -229,23 +235,24 @@ pot = positives_within(tr.db_utm, tr.q_utm, tr.train_pos_radius)
 frac_pot = np.mean([np.mean(heading_diff(tr.q_heading[i], tr.db_heading[pp]) <= HEADING_DIFF) for i, pp in enumerate(pot) if len(pp)])
 print(f"potential positives (within 10 m) facing the query's way: {frac_pot:.3f}")
 print(f"untrained network's chosen positive facing the query's way: {same_way.mean():.3f}")
-"""),
-    ("md", r"""
-The untrained network picks the view that faces the query's way more often than chance, but for a
-large part of the queries (the number above) it picks a view that shows other facades. Without the
-filter, those "positives" share no content with the query, and learning is much slower
-(the `reproduce` profile measures it below). NetVLAD on Pittsburgh gets away with the plain rule
-because its VGG16 starts from ImageNet weights that already prefer the right view.
 
-## Experiment: train the recipe
 
-Small CNN + GeM, Eq. (3) with $m = 0.1$, $M = 5$ hardest of 300 negatives per query, batch 16, SGD (lr
-0.05, momentum 0.9, weight decay $10^{-3}$), the learning rate halved every few epochs, the best epoch
-on validation kept. The `reproduce` profile trains 14 epochs with StepLR(5, 0.5); the `ci` profile (what
-is stored here) squeezes the same schedule into 5 epochs with StepLR(2, 0.5), so that the notebook runs
-in under a minute.
-"""),
-    ("code", r"""
+# %% [markdown]
+# The untrained network picks the view that faces the query's way more often than chance, but for a
+# large part of the queries (the number above) it picks a view that shows other facades. Without the
+# filter, those "positives" share no content with the query, and learning is much slower
+# (the `reproduce` profile measures it below). NetVLAD on Pittsburgh gets away with the plain rule
+# because its VGG16 starts from ImageNet weights that already prefer the right view.
+#
+# ## Experiment: train the recipe
+#
+# Small CNN + GeM, Eq. (3) with $m = 0.1$, $M = 5$ hardest of 300 negatives per query, batch 16, SGD (lr
+# 0.05, momentum 0.9, weight decay $10^{-3}$), the learning rate halved every few epochs, the best epoch
+# on validation kept. The `reproduce` profile trains 14 epochs with StepLR(5, 0.5); the `ci` profile (what
+# is stored here) squeezes the same schedule into 5 epochs with StepLR(2, 0.5), so that the notebook runs
+# in under a minute.
+
+# %%
 # NBVAL_IGNORE_OUTPUT
 # (wall time varies)
 def train_recipe(seed=0, **source_kwargs):
@@ -260,8 +267,8 @@ t0 = time.perf_counter()
 model, history = train_recipe(max_heading_diff=HEADING_DIFF)
 train_seconds = time.perf_counter() - t0
 print(f"trained {EPOCHS} epochs in {train_seconds:.1f} s ({train_seconds / EPOCHS:.1f} s per epoch)")
-"""),
-    ("code", r"""
+
+# %%
 print(f"{'epoch':>5s}{'loss':>8s}{'lr':>8s}{'val R@1':>9s}")
 for e in history.epochs:
     print(f"{e['epoch'] + 1:5d}{e['loss']:8.3f}{e['lr']:8.4f}{e['val'][1]:9.3f}")
@@ -269,21 +276,21 @@ print(f"best epoch {history.best_epoch + 1} (val R@1 {history.best_recall:.3f});
 history.plot()
 plt.tight_layout()
 plt.show()
-"""),
-    ("md", r"""
-### Training health: how to recognise a collapsed run
 
-Two numbers that `train` records every epoch tell a healthy run from a collapsed one:
+# %% [markdown]
+# ### Training health: how to recognise a collapsed run
+#
+# Two numbers that `train` records every epoch tell a healthy run from a collapsed one:
+#
+# * the **collapsed loss**: the loss the same batches would have if *every* image had the same descriptor.
+#   For Eq. (3) every triplet then costs exactly the margin, so it is $M \cdot m = 5 \times 0.1 = 0.5$ per
+#   query. A loss that stays near it means the network has not separated anything;
+# * the **mean pairwise cosine** of the validation database descriptors: near 1, all images look alike
+#   to the network.
+#
+# Below, the recipe beside the same recipe with a 10× larger learning rate (0.5), for two epochs.
 
-* the **collapsed loss**: the loss the same batches would have if *every* image had the same descriptor.
-  For Eq. (3) every triplet then costs exactly the margin, so it is $M \cdot m = 5 \times 0.1 = 0.5$ per
-  query. A loss that stays near it means the network has not separated anything;
-* the **mean pairwise cosine** of the validation database descriptors: near 1, all images look alike
-  to the network.
-
-Below, the recipe beside the same recipe with a 10× larger learning rate (0.5), for two epochs.
-"""),
-    ("code", r"""
+# %%
 # NBVAL_IGNORE_OUTPUT
 # (wall time varies)
 t0 = time.perf_counter()
@@ -292,8 +299,8 @@ hot = build_model("small_cnn", "gem")
 hot_history = train(hot, TripletSource(ds.train, "triplet", margin=MARGIN, num_negatives=M, max_heading_diff=HEADING_DIFF),
                     ds.val, TrainConfig(epochs=HEALTH_EPOCHS, optimizer="sgd", lr=0.5, step_size=STEP_SIZE, seed=0), progress=False)
 print(f"lr 0.5 run: {HEALTH_EPOCHS} epochs in {time.perf_counter() - t0:.1f} s")
-"""),
-    ("code", r"""
+
+# %%
 print(f"{'':>6s}{'recipe (lr 0.05)':^34s}{'lr 0.5':^34s}")
 print(f"{'epoch':>6s}" + f"{'loss':>8s}{'collapsed':>10s}{'cos':>7s}{'val R@1':>9s}" * 2)
 for a, b in zip(history.epochs, hot_history.epochs):
@@ -312,24 +319,24 @@ axes[2].set(xlabel="epoch", ylabel="val R@1", title="validation Recall@1", ylim=
 axes[0].legend()
 plt.tight_layout()
 plt.show()
-"""),
-    ("md", r"""
-With the large learning rate the loss stays close to its collapsed value and the descriptors crowd
-together (mean cosine near 1) while validation recall falls: the network maps every street view to
-nearly the same vector, and every triplet again costs about the margin. The recipe's loss drops well
-below the collapsed value and its descriptors spread out. Whenever a later run disappoints, look at
-these two columns first.
 
-### Test Recall@N against the baselines
+# %% [markdown]
+# With the large learning rate the loss stays close to its collapsed value and the descriptors crowd
+# together (mean cosine near 1) while validation recall falls: the network maps every street view to
+# nearly the same vector, and every triplet again costs about the margin. The recipe's loss drops well
+# below the collapsed value and its descriptors spread out. Whenever a later run disappoints, look at
+# these two columns first.
+#
+# ### Test Recall@N against the baselines
+#
+# The last row is the **course backbone** (`vpr_nb.pretrain.course_backbone()`), frozen, with GeM: a
+# wider SmallCNN (48 channels) pretrained once with the Multi-Similarity loss on other synthetic worlds
+# (world seeds ≥ 100, both presets, all conditions; never this world), the course's stand-in for the
+# ImageNet-VGG16 of DW-T-Loss and the DINOv2 of SALAD. `python -m vpr_nb.pretrain` re-makes it; its card
+# (`data_fixtures/course_backbone.json`) records how. Notebooks 03–07 start from it, as the papers start
+# from theirs.
 
-The last row is the **course backbone** (`vpr_nb.pretrain.course_backbone()`), frozen, with GeM: a
-wider SmallCNN (48 channels) pretrained once with the Multi-Similarity loss on other synthetic worlds
-(world seeds ≥ 100, both presets, all conditions; never this world), the course's stand-in for the
-ImageNet-VGG16 of DW-T-Loss and the DINOv2 of SALAD. `python -m vpr_nb.pretrain` re-makes it; its card
-(`data_fixtures/course_backbone.json`) records how. Notebooks 03–07 start from it, as the papers start
-from theirs.
-"""),
-    ("code", r"""
+# %%
 te = ds.test
 vpr_nb.seed_everything(0)
 untrained = build_model("small_cnn", "gem")
@@ -353,14 +360,14 @@ print(f"from scratch: {trained_r1 - results['raw pixels'][1]:+.3f} R@1 over raw 
       f"{trained_r1 - results['course backbone (frozen) + GeM'][1]:+.3f} R@1 vs the frozen course backbone")
 plots.plot_recalls(results, title="city tiny test")
 plt.show()
-"""),
-    ("md", r"""
-### What the trained model retrieves
 
-Query (grey frame), then its top-5 database images framed green (within 25 m) or red, labelled with
-their true distance. Two queries solved at rank 1, two that are not.
-"""),
-    ("code", r"""
+# %% [markdown]
+# ### What the trained model retrieves
+#
+# Query (grey frame), then its top-5 database images framed green (within 25 m) or red, labelled with
+# their true distance. Two queries solved at rank 1, two that are not.
+
+# %%
 db_d, q_d = compute_descriptors(model, te.db_images), compute_descriptors(model, te.q_images)
 _, idx = retrieve(db_d, q_d, 10)
 pos = positives_within(te.db_utm, te.q_utm, te.pos_radius)
@@ -371,29 +378,29 @@ plots.retrieval_grid(te.q_images, te.db_images, idx, pos, show, k=5, distances_m
 plt.show()
 print(f"wrong top-1: {int((~correct).sum())} of {len(correct)}; median distance of those wrong answers: "
       f"{np.median(dist_m[~correct, 0]):.0f} m")
-"""),
-    ("md", r"""
-### Mining, revisited with the trained network
-"""),
-    ("code", r"""
+
+# %% [markdown]
+# ### Mining, revisited with the trained network
+
+# %%
 mining_trained = mining_table(model, "trained network")
 tb_any = mine(300)
 has_pos = tb_any.positive >= 0
 same_way_trained = heading_diff(tr.q_heading[tb_any.query[has_pos]], tr.db_heading[tb_any.positive[has_pos]]) <= HEADING_DIFF
 print(f"trained network's chosen positive (no heading filter) facing the query's way: {same_way_trained.mean():.3f} "
       f"(untrained: {same_way.mean():.3f})")
-"""),
-    ("md", r"""
-## Ablations (`reproduce` profile)
 
-Two more runs of the same recipe, each changing one thing:
+# %% [markdown]
+# ## Ablations (`reproduce` profile)
+#
+# Two more runs of the same recipe, each changing one thing:
+#
+# * **no heading filter** — NetVLAD's plain rule, the positive is the nearest (in descriptor space) of
+#   all images within 10 m, whatever their heading;
+# * **random negatives** — `num_candidates = M`: each query's negatives are the hardest 5 of only 10
+#   random ones (5 fresh + its 5 cached from the last epoch), instead of 5 of about 305.
 
-* **no heading filter** — NetVLAD's plain rule, the positive is the nearest (in descriptor space) of
-  all images within 10 m, whatever their heading;
-* **random negatives** — `num_candidates = M`: each query's negatives are the hardest 5 of only 10
-  random ones (5 fresh + its 5 cached from the last epoch), instead of 5 of about 305.
-"""),
-    ("code", r"""
+# %%
 # NBVAL_IGNORE_OUTPUT
 # (wall time varies)
 ablations = {}
@@ -404,8 +411,8 @@ if ABLATIONS:
         net, hist = train_recipe(**kw)
         ablations[name] = (evaluate_model(net, te, NS), hist)
         print(f"{name}: {time.perf_counter() - t0:.1f} s")
-"""),
-    ("code", r"""
+
+# %%
 if ABLATIONS:
     rows = {"recipe (heading filter, hard negatives)": (results["trained CNN + GeM (T-Loss)"], history), **ablations}
     print(f"{'run':42s}" + "".join(f"{'R@' + str(k):>8s}" for k in NS) + f"{'best val R@1':>14s}")
@@ -418,8 +425,8 @@ if ABLATIONS:
     plt.show()
 else:
     print("ablations skipped in the ci profile (run with PROFILE = 'reproduce', or see Exercise 1)")
-"""),
-    ("code", r"""
+
+# %%
 record("02_triplet_baseline", {
     "epochs": EPOCHS,
     **{f"{name} R@{k}": round(r[k], 3) for name, r in results.items() for k in NS},
@@ -435,23 +442,25 @@ record("02_triplet_baseline", {
     "lr 0.5 run, last epoch: loss / collapsed loss": round(hot_history.losses[-1] / hot_history.collapsed_losses[-1], 3),
     "lr 0.5 run, last epoch: mean cosine": round(hot_history.mean_cosines[-1], 3),
 })
-"""),
-    ("md", r"""
-## Graded exercise: Eq. (3) with M negatives per query
 
-Write `my_triplet_loss(q, p, n, margin)` for `q`, `p` of shape (B, D) and `n` of shape (B, M, D): the
-sum over all B·M triplets of $\max(0,\, d(q,p) - d(q,n_j) + m)$ with Euclidean $d$, in plain torch
-(no `vpr_nb`, no `torch.nn.TripletMarginLoss`).
-"""),
-    ("solution", r"""
+
+# %% [markdown]
+# ## Graded exercise: Eq. (3) with M negatives per query
+#
+# Write `my_triplet_loss(q, p, n, margin)` for `q`, `p` of shape (B, D) and `n` of shape (B, M, D): the
+# sum over all B·M triplets of $\max(0,\, d(q,p) - d(q,n_j) + m)$ with Euclidean $d$, in plain torch
+# (no `vpr_nb`, no `torch.nn.TripletMarginLoss`).
+
+# %% nbgrader={"grade": false, "grade_id": "ex-02-triplet", "locked": false, "schema_version": 3, "solution": true}
 def my_triplet_loss(q, p, n, margin=0.1):
     ### BEGIN SOLUTION
     d_qp = (q - p).norm(dim=-1, keepdim=True)          # (B, 1)
     d_qn = (q[:, None, :] - n).norm(dim=-1)              # (B, M)
     return torch.relu(d_qp - d_qn + margin).sum()
     ### END SOLUTION
-""", "ex-02-triplet"),
-    ("tests", r"""
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-02-triplet-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
 g = torch.Generator().manual_seed(1)
 q_t, p_t, n_t = (torch.randn(4, 8, generator=g), torch.randn(4, 8, generator=g), torch.randn(4, 3, 8, generator=g))
 assert torch.allclose(my_triplet_loss(q_t, p_t, n_t, 0.1), triplet_loss(q_t, p_t, n_t, 0.1), atol=1e-5)
@@ -459,56 +468,50 @@ assert torch.allclose(my_triplet_loss(q_t, p_t, n_t, 0.1), triplet_loss(q_t, p_t
 assert torch.allclose(my_triplet_loss(q_t, p_t, n_t, 2.0), triplet_loss(q_t, p_t, n_t, 2.0), atol=1e-5)
 assert my_triplet_loss(q_t, q_t, q_t[:, None, :] + 10, 0.1).item() == 0.0
 ### END HIDDEN TESTS
-""", "ex-02-triplet", 1),
-    ("md", r"""
-## Exercises
 
-1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with
-   `num_candidates=M`. How many epochs does each need to reach the recipe's validation R@1?
-2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on plain
-   L2). What fraction of mined triplets violates the margin at the end of training in each case?
-3. **Squared distances.** The NetVLAD MATLAB code puts the margin on *squared* distances. Write that
-   variant of Eq. (3) and show that for unit vectors $d^2 = 2 - 2\cos$, so it is a margin on cosine
-   similarities.
-4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is best
-   here? (Notebook 03 measures it with several seeds.)
-5. **Semi-hard negatives.** FaceNet trains on negatives that are farther than the positive but within
-   the margin. Implement that selection from the output of `mine_triplets` and compare.
-
-## Takeaways
-
-* Eq. (3) is one line of torch and equals `torch.nn.TripletMarginLoss` (sum reduction) up to its `eps`.
-* Only margin-violating triplets carry gradient; once the network has learnt something, random
-  negatives rarely violate the margin while hard negatives mined from a descriptor cache still do
-  (the two tables above), so mining decides what the network learns.
-* Weak GPS supervision needs care: the positive must actually show the query's place; with a random
-  initial network and several views per place, a heading filter supplies what ImageNet pre-training
-  supplies on Pittsburgh.
-* A 5-epoch CPU run from random weights lifts test R@1 far above raw pixels (numbers above); one seed
-  of from-scratch training is noisy (its validation R@1 still jumps by several points from epoch to epoch).
-* A collapsed run is easy to spot: its loss stays near the collapsed value ($M \cdot m$ for Eq. 3) and
-  the mean pairwise cosine of its descriptors approaches 1 (the lr 0.5 run above); the healthy run's
-  loss falls well below it.
-* The frozen course backbone, pretrained on other worlds, is compared with the from-scratch model in
-  the test table above. Notebooks 03–07 fine-tune it, as the papers fine-tune a pretrained backbone,
-  and change only the loss, the aggregator or the batches.
-
-## References
-
-* J. Xiong, Y. Xu, Z. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place
-  Recognition* (DW-T-Loss): Eq. (3), the triplet loss; notebook 03 reproduces its loss study.
-* R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic, *NetVLAD: CNN architecture for weakly
-  supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247);
-  code: [Relja/netvlad](https://github.com/Relja/netvlad), PyTorch port
-  [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
-* F. Radenović, G. Tolias, O. Chum, *Fine-tuning CNN image retrieval with no human annotation*, TPAMI
-  2018, [arXiv:1711.02512](https://arxiv.org/abs/1711.02512) (GeM pooling);
-  code: [filipradenovic/cnnimageretrieval-pytorch](https://github.com/filipradenovic/cnnimageretrieval-pytorch).
-* F. Schroff, D. Kalenichenko, J. Philbin, *FaceNet: a unified embedding for face recognition and
-  clustering*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832) (semi-hard negatives).
-"""),
-]
-
-
-if __name__ == "__main__":
-    write(NAME, CELLS)
+# %% [markdown]
+# ## Exercises
+#
+# 1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with
+#    `num_candidates=M`. How many epochs does each need to reach the recipe's validation R@1?
+# 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on plain
+#    L2). What fraction of mined triplets violates the margin at the end of training in each case?
+# 3. **Squared distances.** The NetVLAD MATLAB code puts the margin on *squared* distances. Write that
+#    variant of Eq. (3) and show that for unit vectors $d^2 = 2 - 2\cos$, so it is a margin on cosine
+#    similarities.
+# 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is best
+#    here? (Notebook 03 measures it with several seeds.)
+# 5. **Semi-hard negatives.** FaceNet trains on negatives that are farther than the positive but within
+#    the margin. Implement that selection from the output of `mine_triplets` and compare.
+#
+# ## Takeaways
+#
+# * Eq. (3) is one line of torch and equals `torch.nn.TripletMarginLoss` (sum reduction) up to its `eps`.
+# * Only margin-violating triplets carry gradient; once the network has learnt something, random
+#   negatives rarely violate the margin while hard negatives mined from a descriptor cache still do
+#   (the two tables above), so mining decides what the network learns.
+# * Weak GPS supervision needs care: the positive must actually show the query's place; with a random
+#   initial network and several views per place, a heading filter supplies what ImageNet pre-training
+#   supplies on Pittsburgh.
+# * A 5-epoch CPU run from random weights lifts test R@1 far above raw pixels (numbers above); one seed
+#   of from-scratch training is noisy (its validation R@1 still jumps by several points from epoch to epoch).
+# * A collapsed run is easy to spot: its loss stays near the collapsed value ($M \cdot m$ for Eq. 3) and
+#   the mean pairwise cosine of its descriptors approaches 1 (the lr 0.5 run above); the healthy run's
+#   loss falls well below it.
+# * The frozen course backbone, pretrained on other worlds, is compared with the from-scratch model in
+#   the test table above. Notebooks 03–07 fine-tune it, as the papers fine-tune a pretrained backbone,
+#   and change only the loss, the aggregator or the batches.
+#
+# ## References
+#
+# * J. Xiong, Y. Xu, Z. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place
+#   Recognition* (DW-T-Loss): Eq. (3), the triplet loss; notebook 03 reproduces its loss study.
+# * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic, *NetVLAD: CNN architecture for weakly
+#   supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247);
+#   code: [Relja/netvlad](https://github.com/Relja/netvlad), PyTorch port
+#   [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+# * F. Radenović, G. Tolias, O. Chum, *Fine-tuning CNN image retrieval with no human annotation*, TPAMI
+#   2018, [arXiv:1711.02512](https://arxiv.org/abs/1711.02512) (GeM pooling);
+#   code: [filipradenovic/cnnimageretrieval-pytorch](https://github.com/filipradenovic/cnnimageretrieval-pytorch).
+# * F. Schroff, D. Kalenichenko, J. Philbin, *FaceNet: a unified embedding for face recognition and
+#   clustering*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832) (semi-hard negatives).

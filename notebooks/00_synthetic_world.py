@@ -1,0 +1,440 @@
+# ---
+# jupyter:
+#   jupytext:
+#     cell_metadata_filter: tags,nbgrader,-all
+#     formats: ipynb,py:percent
+#     notebook_metadata_filter: kernelspec,jupytext,-all
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 00 · The synthetic world: what visual place recognition is
+#
+# **Aim.** Meet the task and the dataset of the whole course. *Visual place recognition* (VPR) answers
+# "where was this photo taken?" by **retrieval**: a query image is compared with a database of
+# geotagged images, and the geotag of the most similar database image is the answer. It counts as
+# correct when that database image was taken within 25 m of the query (the Pittsburgh / MSLS
+# convention). In this notebook you will
+#
+# * generate the two synthetic worlds every later notebook uses (`make_dataset("city")`,
+#   `make_dataset("route")`), look at their maps, splits, conditions and geotags;
+# * compute the *positives* of a query (the database images that count as correct) by hand and with `vpr_nb`;
+# * see, in pixels, why VPR is hard: **parallax** (nearby cameras see shifted content),
+#   **perceptual aliasing** (different places look alike) and **condition change** (the same place looks different);
+# * read the table of difficulty knobs that notebook 01 sweeps.
+
+# %% tags=["parameters"]
+PROFILE = "ci"  # "ci": the tiny worlds (fast, what CI checks); "reproduce": the larger "small" worlds
+
+# %%
+import dataclasses
+import time
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+import vpr_nb
+from vpr_nb import plots
+from vpr_nb.evaluation import positives_within, raw_pixel_descriptors
+from vpr_nb.report import record
+from vpr_nb.synthetic import SPLITS, WorldConfig, make_config, make_dataset
+
+if PROFILE not in ("ci", "reproduce"):
+    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
+SIZE = {"ci": "tiny", "reproduce": "small"}[PROFILE]
+vpr_nb.seed_everything(0)
+np.set_printoptions(precision=3, suppress=True)
+print("world size:", SIZE)
+
+# %% [markdown]
+# ## Theory
+#
+# **Data.** A database $\mathcal{D} = \{(x_i, g_i)\}_{i=1}^{M}$ of images $x_i$ with geotags
+# $g_i \in \mathbb{R}^2$ (easting, northing in metres, i.e. UTM), and queries $(x_q, g_q)$ whose
+# geotag is hidden from the method and only used for scoring.
+#
+# **Positives.** The database images that count as a correct answer for query $q$ are those within a
+# radius $r$ of it:
+#
+# $$\mathcal{P}(q) = \{\, i : \lVert g_q - g_i \rVert_2 \le r \,\} \tag{1}$$
+#
+# with $r = 25$ m for street-level datasets (Pittsburgh, MSLS; the `city` preset) and, for a
+# frame-aligned route (Nordland; the `route` preset), the same frame $\pm 1$, which is Eq. (1) with
+# $r$ just above the frame spacing.
+#
+# **Retrieval.** A model maps each image to a global descriptor $f(x) \in \mathbb{R}^D$ with
+# $\lVert f(x) \rVert_2 = 1$ and returns the nearest database image
+#
+# $$\hat{\imath}(q) = \arg\min_{i} \lVert f(x_q) - f(x_i) \rVert_2 , \tag{2}$$
+#
+# which is correct iff $\hat{\imath}(q) \in \mathcal{P}(q)$; Recall@N (notebook 01) generalises this to the top $N$.
+#
+# **Parallax.** A pinhole camera with horizontal field of view $\phi$ on a $W$-pixel-wide image has focal
+# length $f_{px} = \tfrac{W/2}{\tan(\phi/2)}$. A point at depth $Z$ and lateral offset $X$ projects to
+# column $u = f_{px} X / Z$, so moving the camera sideways by $t$ shifts it by
+#
+# $$\Delta u = f_{px}\, \frac{t}{Z}\ \text{pixels}. \tag{3}$$
+#
+# Near facades ($Z \approx 10$ m) slide across the image while the far skyline ($Z \approx 1000$ m)
+# stays put: nearby cameras share content, and content changes *continuously* with distance. That is
+# what makes a 25 m radius meaningful, and also why a query 20 m away from its positive can look quite different.
+#
+# **Perceptual aliasing.** Facades are drawn from a small library of $K$ styles (`num_facade_types`).
+# With $B$ buildings each style appears about $B/K$ times, so two places far apart can look alike.
+#
+# **Condition change.** The database is rendered in one condition (summer daylight); queries in others
+# (overcast, dusk, autumn, winter, rain), with occluders (cars, pedestrians) and camera jitter.
+
+# %% [markdown]
+# ## Build it: parallax and positives with plain numpy
+#
+# Eq. (3) for the camera of the synthetic world (48 px wide, 90° field of view), then Eq. (1) by brute
+# force: all query-to-database distances, thresholded at $r$.
+
+# %%
+W, fov = 48, 90.0
+f_px = (W / 2) / np.tan(np.radians(fov) / 2)             # focal length in pixels
+print(f"focal length f_px = {f_px:.1f} px")
+print("sideways move t  |  shift (px) of a point at depth Z = 5, 10, 20, 50, 1000 m   (Eq. 3)")
+for t in (1.0, 5.0, 10.0, 25.0):
+    shifts = f_px * t / np.array([5.0, 10.0, 20.0, 50.0, 1000.0])
+    print(f"  t = {t:4.0f} m        |", "  ".join(f"{s:6.1f}" for s in shifts))
+
+
+def positives_by_hand(db_utm, q_utm, radius):
+    # Eq. (1): full (num_queries, num_db) distance matrix, then a threshold
+    d = np.sqrt(((q_utm[:, None, :] - db_utm[None, :, :]) ** 2).sum(-1))
+    return [np.flatnonzero(row <= radius) for row in d]
+
+
+# %% [markdown]
+# ## The two presets
+#
+# `make_dataset(preset, seed=0, size="tiny")` renders the whole world deterministically from the seed.
+# `"city"` is Pittsburgh-like (a street grid, database images every 10 m in 4 headings, queries at
+# random street positions, other conditions); `"route"` is Nordland-like (one long railway, a frame
+# every 5 m, database in summer and queries in winter, frame-aligned).
+
+# %%
+# NBVAL_IGNORE_OUTPUT
+# (generation times vary from machine to machine)
+t0 = time.perf_counter()
+city = make_dataset("city", seed=0, size=SIZE)
+t1 = time.perf_counter()
+route = make_dataset("route", seed=0, size=SIZE)
+t2 = time.perf_counter()
+print(f"city generated in {t1 - t0:.1f} s, route in {t2 - t1:.1f} s")
+
+# %%
+for ds in (city, route):
+    print(ds)
+    print(f"  images {ds.db_images.dtype} {ds.db_images.shape[1:]}, geotags {ds.db_utm.dtype}, "
+          f"conditions {ds.condition_names}")
+    for k, s in enumerate(SPLITS):
+        print(f"  {s:5s}: {int((ds.db_split == k).sum()):5d} database, {int((ds.q_split == k).sum()):5d} queries")
+
+# %% [markdown]
+# ### Maps and splits
+#
+# Train / val / test are **geographically disjoint** bands (the gap between them is wider than the
+# positive radius), so no test query has a positive among the training images: a model cannot pass the
+# test by memorising the training places. Colours mark the splits only (blue train, orange val, green
+# test; dots database, crosses queries); the scene is drawn in greys: walls as light grey lines, trees as
+# dark grey dots.
+
+# %%
+fig, axes = plt.subplots(2, 1, figsize=(10, 8.5))
+plots.plot_map(city, ax=axes[0])
+plots.plot_map(route, ax=axes[1])
+fig.tight_layout()
+plt.show()
+
+
+def min_gap(ds, a, b):
+    pa = np.concatenate([ds.db_utm[ds.db_split == a], ds.q_utm[ds.q_split == a]])
+    pb = np.concatenate([ds.db_utm[ds.db_split == b], ds.q_utm[ds.q_split == b]])
+    return min(np.sqrt(((pa[i:i + 500, None] - pb[None]) ** 2).sum(-1)).min() for i in range(0, len(pa), 500))
+
+
+for ds in (city, route):
+    gaps = {f"{SPLITS[a]}-{SPLITS[b]}": min_gap(ds, a, b) for a, b in ((0, 1), (1, 2), (0, 2))}
+    print(ds.name, "closest images of different splits (m):", {k: round(float(v), 1) for k, v in gaps.items()},
+          f"> pos_radius {ds.pos_radius:g} m:", all(v > ds.pos_radius for v in gaps.values()))
+
+# %% [markdown]
+# ### Conditions
+#
+# Row 0 is the database condition; the other rows are query conditions. Look for the season palette
+# (foliage, snow on the ground), the illumination and sun direction, fog, rain noise, lit windows at
+# dusk, and the occluders (coloured boxes: cars and pedestrians).
+
+# %%
+plots.condition_grid(city.test, per_condition=8, seed=0)
+plt.show()
+
+# %%
+plots.condition_grid(route.test, per_condition=8, seed=0)
+plt.show()
+
+# %% [markdown]
+# ### The difficulty knobs
+#
+# Every knob of the world lives in one dataclass, `WorldConfig`; `make_dataset(..., **overrides)`
+# changes any of them (for example `make_dataset("city", condition_strength=0.5)`), and an unknown
+# name raises a `ValueError`. The *difficulty knobs* are the ones notebook 01 sweeps.
+
+# %%
+DIFFICULTY = {
+    "condition_strength": "0 = queries in the database condition, 1 = full condition change",
+    "position_jitter": "std (m) of query position noise (route: along the track)",
+    "heading_jitter": "std (deg) of query heading noise",
+    "pitch_jitter": "std (px) of the horizon shift of queries",
+    "occluder_rate": "mean number of cars / pedestrians per query",
+    "num_facade_types": "facade styles in the library (fewer = more aliasing)",
+    "colour_variation": "per-building colour noise (less = more aliasing)",
+}
+cfg_city, cfg_route = make_config("city", SIZE), make_config("route", SIZE)
+print(f"{'knob':20s} {'city':>10s} {'route':>10s}   meaning")
+for name, meaning in DIFFICULTY.items():
+    print(f"{name:20s} {getattr(cfg_city, name)!s:>10s} {getattr(cfg_route, name)!s:>10s}   {meaning}")
+CITY_ONLY = {"blocks", "block_size", "street_width", "place_spacing", "headings", "heading_offset", "queries_per_place"}
+ROUTE_ONLY = {"num_frames", "frame_spacing", "frames_per_group"}
+print("\nother knobs (geometry, rendering, splits; '-' = not used by that preset):")
+for f in dataclasses.fields(WorldConfig):
+    if f.name in DIFFICULTY or f.name in ("preset", "size"):
+        continue
+    a = "-" if f.name in ROUTE_ONLY else getattr(cfg_city, f.name)
+    b = "-" if f.name in CITY_ONLY else getattr(cfg_route, f.name)
+    print(f"  {f.name:20s} city: {a!s:28s} route: {b!s}")
+
+# %% [markdown]
+# ## Use `vpr_nb`: positives
+#
+# `dataset.positives()` (which calls `vpr_nb.evaluation.positives_within`, a KD-tree range search that
+# never builds the full distance matrix) must give exactly the sets of Eq. (1) computed by hand above.
+
+# %%
+city_test, route_test = city.test, route.test
+for ds in (city_test, route_test):
+    mine = positives_by_hand(ds.db_utm, ds.q_utm, ds.pos_radius)
+    lib = ds.positives()
+    assert len(mine) == len(lib) and all(np.array_equal(a, b) for a, b in zip(mine, lib))
+    lib2 = positives_within(ds.db_utm, ds.q_utm, ds.pos_radius)
+    assert all(np.array_equal(a, b) for a, b in zip(lib, lib2))
+print("hand-made positives == vpr_nb positives for", city_test.name, "and", route_test.name, "test splits")
+
+# %% [markdown]
+# ## Experiment: geotags, positives, parallax, aliasing
+#
+# ### How many positives does a query have?
+#
+# In the city a place is photographed in 4 headings every 10 m along the street, so a 25 m radius holds
+# a few dozen database images, **most of them looking another way** (a positive by geotag need not
+# share any content with the query). On the route a query has its own frame and the neighbour(s) within
+# one frame spacing.
+
+# %%
+n_city = np.array([len(p) for p in city_test.positives()])
+n_route = np.array([len(p) for p in route_test.positives()])
+for name, n in (("city", n_city), ("route", n_route)):
+    print(f"{name:5s} test: {len(n)} queries, positives per query mean {n.mean():.2f}, "
+          f"min {n.min()}, max {n.max()}, queries without positive {int((n == 0).sum())}")
+print("route positives per query (count: queries):", dict(zip(*[x.tolist() for x in np.unique(n_route, return_counts=True)])))
+
+fig, axes = plt.subplots(1, 2, figsize=(10, 3))
+axes[0].hist(n_city, bins=np.arange(n_city.max() + 2) - 0.5, color="tab:green")
+axes[0].set(title=f"city test: positives within {city.pos_radius:g} m", xlabel="positives per query", ylabel="queries")
+axes[1].hist(n_route, bins=np.arange(n_route.max() + 2) - 0.5, color="tab:purple", rwidth=0.6)
+axes[1].set(title=f"route test: positives within {route.pos_radius:g} m", xlabel="positives per query")
+fig.tight_layout()
+plt.show()
+
+# %% [markdown]
+# A query and all its positives, nearest first (title: distance in metres and relative heading). Only
+# the positives that look in roughly the same direction share content with the query.
+
+# %%
+qi = 5
+pos = city_test.positives()[qi]
+dist = np.linalg.norm(city_test.db_utm[pos] - city_test.q_utm[qi], axis=1)
+dhead = (city_test.db_heading[pos] - city_test.q_heading[qi] + 180) % 360 - 180
+order = np.argsort(dist)[:15]
+images = np.concatenate([city_test.q_images[qi:qi + 1], city_test.db_images[pos[order]]])
+cond = city_test.condition_names[city_test.q_condition[qi]]
+titles = [f"query ({cond})"] + [f"{dist[j]:.0f} m, {dhead[j]:+.0f}°" for j in order]
+frames = ["0.2"] + [plots.CORRECT if abs(dhead[j]) < 45 else None for j in order]
+plots.image_grid(images, titles=titles, ncols=8, frame_colours=frames)
+plt.show()
+
+# %% [markdown]
+# ### Parallax: one place seen from nearby positions
+#
+# Top: consecutive route frames (5 m apart), all in the database condition: trees and houses near the
+# track slide out of view while the hills on the horizon stay fixed (Eq. 3). Bottom: city database
+# images that look the same way from places 0, 10, 20, … m down the street.
+
+# %%
+start = 40
+frames_ = route_test.db_images[start:start + 8]
+titles = [f"frame {start + k}: {5 * k} m" for k in range(8)]
+plots.image_grid(frames_, titles=titles, ncols=8)
+plt.show()
+
+# city: database images with the same heading (45 deg: diagonal to an east-west street) on one street
+def angle_diff(a, b):
+    return np.abs((a - b + 180) % 360 - 180)
+
+
+ew = np.flatnonzero(angle_diff(city_test.db_heading, 45.0) < 10)           # heading ~45 deg
+y0 = np.round(city_test.db_utm[ew, 1]).min()                                 # the southern-most street
+on_street = ew[np.abs(city_test.db_utm[ew, 1] - y0) < 2]
+on_street = on_street[np.argsort(city_test.db_utm[on_street, 0])][:8]
+dd = city_test.db_utm[on_street, 0] - city_test.db_utm[on_street[0], 0]
+plots.image_grid(city_test.db_images[on_street], titles=[f"{x:.0f} m" for x in dd], ncols=8)
+plt.show()
+
+# %% [markdown]
+# How quickly does appearance change with distance? Cosine similarity between database images of the
+# same heading as a function of the distance between their cameras, for two pixel descriptors: raw
+# pixels (flattened, L2-normalised: the baseline of notebook 01) and *centred* pixels (the mean database
+# image subtracted first). Raw cosines all sit near 0.85, because every image shares the same layout
+# of sky, facades and road; centring removes that shared part and shows the decay clearly. Either way,
+# similarity falls to the level of unrelated pairs within a few tens of metres: beyond that, pixels
+# alone cannot tell whether two images show the same place.
+
+# %%
+x = city.db_images.reshape(len(city.db_images), -1).astype(np.float32) / 255.0
+x = x - x.mean(0)
+descs = {"raw pixels": raw_pixel_descriptors(city.db_images),
+         "centred pixels": x / np.linalg.norm(x, axis=1, keepdims=True)}
+rng = np.random.default_rng(0)
+sub = np.sort(rng.choice(len(city.db_images), min(1500, len(city.db_images)), replace=False))
+ia, ib = np.triu_indices(len(sub), 1)
+keep = angle_diff(city.db_heading[sub[ia]], city.db_heading[sub[ib]]) < 10
+ia, ib = ia[keep], ib[keep]
+dist = np.linalg.norm(city.db_utm[sub[ia]] - city.db_utm[sub[ib]], axis=1)
+bins = np.array([0, 5, 15, 25, 40, 60, 100, 200, 400, 1000])
+which = np.digitize(dist, bins) - 1
+curves = {}
+for name, dsc in descs.items():
+    sim = (dsc[sub] @ dsc[sub].T)[ia, ib]
+    curves[name] = np.array([sim[which == k].mean() if (which == k).any() else np.nan for k in range(len(bins) - 1)])
+print(f"{'distance':>12s} {'pairs':>7s}" + "".join(f"{k:>16s}" for k in descs))
+for k in range(len(bins) - 1):
+    print(f"{bins[k]:5d}-{bins[k + 1]:4d} m {int((which == k).sum()):7d}" + "".join(f"{curves[n][k]:16.3f}" for n in descs))
+fig, axes = plt.subplots(1, 2, figsize=(10, 3))
+for ax, (name, c) in zip(axes, curves.items()):
+    ax.semilogx(np.sqrt(np.maximum(bins[:-1], 1) * bins[1:]), c, marker="o")
+    ax.axvline(city.pos_radius, color="0.5", ls="--", label="25 m")
+    ax.set(xlabel="distance between the two cameras (m)", ylabel="mean cosine", title=f"{name}, same heading")
+    ax.legend()
+fig.tight_layout()
+plt.show()
+
+# %% [markdown]
+# ### Perceptual aliasing: two places, one facade style
+#
+# For every city database image we cast the central ray and find the building it hits (the scene is
+# available as `dataset.extra["scene"]`: wall segments with a facade `style` id). Among pairs of images
+# **more than 100 m apart** whose central building has the same style, we show the pair whose raw pixels
+# are most alike, next to each image's true neighbour 10 m down the street.
+
+# %%
+scene = city.extra["scene"]
+desc = descs["raw pixels"]
+utm, head, desc_s = city.db_utm[sub], city.db_heading[sub], desc[sub]
+walls = np.flatnonzero(scene.kind == 0)
+A, E = scene.a[walls], scene.b[walls] - scene.a[walls]
+D = np.stack([np.cos(np.radians(head)), np.sin(np.radians(head))], 1)
+AO = A[None] - utm[:, None]
+den = D[:, None, 0] * E[None, :, 1] - D[:, None, 1] * E[None, :, 0]
+with np.errstate(divide="ignore", invalid="ignore"):
+    t = (AO[..., 0] * E[None, :, 1] - AO[..., 1] * E[None, :, 0]) / den     # distance along the ray
+    s = (AO[..., 0] * D[:, None, 1] - AO[..., 1] * D[:, None, 0]) / den     # position along the wall
+t = np.where((t > 0) & (s >= 0) & (s <= 1), t, np.inf)
+hit = np.argmin(t, 1)
+style = np.where(np.isfinite(t.min(1)), scene.style[walls[hit]], -1)
+print("facade styles hit by the central ray (style: images):",
+      dict(zip(*[x.tolist() for x in np.unique(style, return_counts=True)])))
+
+sim = desc_s @ desc_s.T
+far = np.linalg.norm(utm[:, None] - utm[None], axis=-1) > 100
+same = (style[:, None] == style[None]) & (style[:, None] >= 0)
+i, j = np.unravel_index(np.argmax(np.where(far & same, sim, -1)), sim.shape)
+print(f"most alike pair: images {sub[i]} and {sub[j]}, {np.linalg.norm(utm[i] - utm[j]):.0f} m apart, "
+      f"style {style[i]}, raw-pixel cosine {sim[i, j]:.3f}")
+
+
+def neighbour(k):  # the most similar database image with the same heading, 5-15 m away
+    d = np.linalg.norm(city.db_utm - utm[k], axis=1)
+    ok = np.flatnonzero((angle_diff(city.db_heading, head[k]) < 10) & (d > 5) & (d < 15))
+    return int(ok[np.argmax(desc[ok] @ desc_s[k])])
+
+
+ni, nj = neighbour(i), neighbour(j)
+plots.image_grid(city.db_images[[sub[i], sub[j], ni, nj]],
+                 titles=[f"place A ({sim[i, j]:.3f} to B)", "place B, far away",
+                         f"A + 10 m ({desc[ni] @ desc_s[i]:.3f} to A)", f"B + 10 m ({desc[nj] @ desc_s[j]:.3f} to B)"],
+                 ncols=4, scale=2.2)
+plt.show()
+
+# %%
+record("00_synthetic_world", {
+    "city db images": int(len(city.db_images)), "city queries": int(len(city.q_images)),
+    "route db images": int(len(route.db_images)), "route queries": int(len(route.q_images)),
+    "city test positives per query (mean)": round(float(n_city.mean()), 3),
+    "route test positives per query (mean)": round(float(n_route.mean()), 3),
+})
+
+# %% [markdown]
+# ## Exercises
+#
+# 1. **Radius.** Recompute the city positives with $r = 10$ m and $r = 50$ m (`ds.positives(radius)`).
+#    How does the mean number of positives scale with $r$, and why roughly like $r$ rather than $r^2$?
+# 2. **Parallax.** With Eq. (3), how far must the camera move for a facade 10 m away to shift by half
+#    the image width? And the skyline at 1000 m? Check the first against the route frames above.
+# 3. **Aliasing.** Regenerate the city with `num_facade_types=2` and with `num_facade_types=40`, rerun the
+#    aliasing cell and compare the cosine of the most alike far-apart pair. Which setting makes VPR harder?
+# 4. **Conditions.** Generate `make_dataset("city", condition_strength=0.0)`: what do the queries look
+#    like now, and which difficulties remain?
+# 5. **Splits.** Why would randomly assigning images to train/test (instead of geographic bands) give an
+#    over-optimistic test score?
+#
+# ## Takeaways
+#
+# * VPR is retrieval: descriptor of the query → nearest database descriptors → their geotags. A result is
+#   correct when it lies within $r$ (25 m, or ±1 frame on a route) of the query, Eq. (1)–(2).
+# * A positive by geotag need not look like the query (other headings, other conditions); a wrong
+#   answer can look very much like it (aliasing). Both make raw pixels a weak descriptor.
+# * Content changes continuously with distance because of parallax, Eq. (3): near structure moves, the skyline does not.
+# * Every difficulty knob sits in `WorldConfig`; splits are geographically disjoint; the same seed gives
+#   the same world. Notebook 01 turns these images into descriptors and measures Recall@N.
+#
+# ## References
+#
+# * S. Lowry, N. Sünderhauf, P. Newman, J. J. Leonard, D. Cox, P. Corke, M. J. Milford. *Visual Place
+#   Recognition: A Survey.* IEEE Transactions on Robotics 32(1), 2016.
+#   [doi:10.1109/TRO.2015.2496823](https://doi.org/10.1109/TRO.2015.2496823) (the task, "place", conditions).
+# * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
+#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247) (Pittsburgh, positives
+#   within 25 m, geographically split evaluation); code: [github.com/Relja/netvlad](https://github.com/Relja/netvlad),
+#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+# * A. Torii, J. Sivic, T. Pajdla, M. Okutomi. *Visual Place Recognition with Repetitive Structures.* CVPR 2013
+#   (the Pittsburgh 250k street-view database the `city` preset imitates; repetitive facades = aliasing).
+# * F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
+#   Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020 (conditions, the 25 m threshold);
+#   code: [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
+# * N. Sünderhauf, P. Neubert, P. Protzel. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
+#   All Four Seasons.* ICRA 2013 Workshop on Long-Term Autonomy (the Nordland railway the `route` preset imitates).
+# * G. Berton, R. Mereu, G. Trivigno, C. Masone, G. Csurka, T. Sattler, B. Caputo. *Deep Visual Geo-localization
+#   Benchmark.* CVPR 2022. [arXiv:2204.03444](https://arxiv.org/abs/2204.03444); code:
+#   [github.com/gmberton/deep-visual-geo-localization-benchmark](https://github.com/gmberton/deep-visual-geo-localization-benchmark)
+#   (dataset formats and evaluation conventions).

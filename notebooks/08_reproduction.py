@@ -1,0 +1,325 @@
+# ---
+# jupyter:
+#   jupytext:
+#     cell_metadata_filter: tags,nbgrader,-all
+#     formats: ipynb,py:percent
+#     notebook_metadata_filter: kernelspec,jupytext,-all
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 08 · From the synthetic world to the papers' tables
+#
+# **Aim.** Put the papers' published numbers next to what this course measures, and give the exact
+# commands that retrain each paper's setup on the real datasets. You will
+#
+# * see how a *preset* of `python -m vpr_nb.train` encodes a paper's training recipe, and derive one
+#   override by hand;
+# * run the reproduction command itself on the synthetic city (the CI budget is small; `make reproduce`
+#   runs it longer) and read its `results.json`;
+# * read the published tables of DW-T-Loss (Xiong et al.), DINOv2-SALAD (Izquierdo & Civera, CVPR 2024)
+#   and SALAD + CliqueMining (ECCV 2024) beside the synthetic results of notebooks 02–07 and any
+#   real-data run you have made;
+# * list the implementation details that move these numbers by several points (margins, thresholds,
+#   query subsets, Nordland protocol) and which choice each preset makes.
+
+# %% tags=["parameters"]
+PROFILE = "ci"            # "ci": 2 epochs of the synthetic preset; "reproduce": the preset's full 14 epochs
+RESULTS_DIR = "../results"  # where python -m vpr_nb.train --out results/<name> runs on real data are looked for
+
+# %%
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+import vpr_nb
+from vpr_nb.report import RESULTS_ENV, record
+from vpr_nb.train import PRESETS, resolve_config, run
+
+if PROFILE not in ("ci", "reproduce"):
+    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
+vpr_nb.seed_everything(0)
+import torch
+torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
+
+# %% [markdown]
+# ## Theory: a reproduction is a configuration
+#
+# A training run is fully described by five groups of choices, the five sections of the typed config in
+# `vpr_nb/config.py` (each a dataclass that holds every default once; a preset holds only its deviations):
+#
+# | section | what it fixes | DW-T-Loss on Pittsburgh30k | DINOv2-SALAD on GSV-Cities |
+# |---|---|---|---|
+# | `data` | dataset, image size, positives radius, validation and test sets | Pitts30k `.mat`, 480×640, 10 m / 25 m; selected on pitts30k_val, tested on pitts30k_test | GSV-Cities, 224×224, places of ≥ 4 images; selected on Pitts30k-val, tested on MSLS-val at 322×322 |
+# | `model` | backbone, aggregator | VGG16 to conv5 (conv5 trained) + NetVLAD, K = 64 | DINOv2 ViT-B/14 (last 4 blocks) + SALAD 64/128/256 |
+# | `source` | how batches and the loss are formed | 4 triplets per batch, 10 hard negatives, T / W-T / CE / DW-T loss | 60 places × 4 images, Multi-Similarity loss + miner |
+# | `train` | optimiser, schedule, epochs, seed | SGD 1e-4, momentum 0.9, wd 1e-3, StepLR(5, 0.5), 30 epochs, seed 123 | AdamW 6e-5, wd 9.5e-9, LinearLR 1 → 0.2 over 4000 steps, 4 epochs × ⌈places / 60⌉ steps |
+# | `eval` | Recall@N, queries without a positive | N = 1, 5, 10, 20; they count as misses (NetVLAD's convention) | N = 1, 5, 10; excluded (MSLS's official evaluation) |
+#
+# The loss of the DW-T run is Eq. (9) of DW-T-Loss, $L = \sum_j -w_j \log d_{n_j}$ with the weight of
+# Eq. (4), $w = \frac{1+\epsilon}{d_{geo}/\sigma + \epsilon} - 1$ (notebook 03); SALAD's is the
+# Multi-Similarity loss, Eq. (6) of Wang et al. (notebook 07).
+
+# %% [markdown]
+# ## Build it: one override by hand
+#
+# `--set section.key=value` changes one entry of the preset. By hand that is a deep copy and one
+# assignment; `resolve_config` does the same, parses each value by its field's type and rejects keys that
+# no section knows.
+
+# %%
+import copy
+
+by_hand = {"preset": "dwt-pitts30k", **copy.deepcopy(PRESETS["dwt-pitts30k"])}
+by_hand["source"]["loss"] = "triplet"          # T-Loss instead of the preset's DW-T-Loss
+by_hand["train"]["lr"] = 1e-3
+
+resolved = resolve_config("dwt-pitts30k", ["source.loss=triplet", "train.lr=1e-3"])
+assert resolved == by_hand
+print("override by hand == resolve_config:", resolved == by_hand)
+try:
+    resolve_config("dwt-pitts30k", ["train.learning_rate=1e-3"])
+except ValueError as err:
+    print("a typo is caught:", str(err)[:70], "...")
+
+# %% [markdown]
+# ## Use `vpr_nb`: the presets and their commands
+#
+# Each preset below is printed with the command that runs it. Real-data presets need the dataset's
+# location (`--set data.root=...`); the formats are those of `vpr_nb.datasets.load` (Pittsburgh `.mat`,
+# gmberton's `@`-named folders, MSLS CSVs, GSV-Cities dataframes, Nordland). Add
+# `torchrun --nproc_per_node N -m vpr_nb.train ...` to train on several GPUs or machines
+# (DistributedDataParallel; tested in CI with 2 CPU processes).
+
+# %%
+ROOTS = {"pitts": "/data/Pittsburgh", "gsv-cities": "/data/GSVCities", "msls": "/data/msls"}
+for name in sorted(PRESETS):
+    cfg = resolve_config(name)
+    d, m, s, t = cfg["data"], cfg["model"], cfg["source"], cfg["train"]
+    where = "" if d["format"] == "synthetic" else f" --set data.root={ROOTS[d['format']]}"
+    arch = f"{m['backbone']}+{m['aggregator']}"
+    loss = s["loss"] if s["kind"] == "triplet" else "ms"
+    print(f"{name:24s} {arch:18s} {s['kind']:8s} loss={loss:8s} "
+          f"{t['optimizer']} lr={t['lr']:g} epochs={t['epochs']}")
+    print(f"    python -m vpr_nb.train --preset {name}{where} --out results/{name}")
+
+# %% [markdown]
+# ## Experiment: the reproduction command on the synthetic city
+#
+# `run` is what `python -m vpr_nb.train` calls. We run the `synthetic-city-triplet` preset (the recipe
+# of notebook 02) into a temporary folder and read back what it wrote: the resolved config,
+# the per-epoch history and the test Recall@N. In the CI profile it trains for 2 epochs only, so its
+# Recall@1 is well below notebook 02's; `make reproduce` runs the preset's full 14 epochs.
+
+# %%
+epochs = {"ci": 2, "reproduce": PRESETS["synthetic-city-triplet"]["train"]["epochs"]}[PROFILE]
+cfg = resolve_config("synthetic-city-triplet", [f"train.epochs={epochs}"])
+with tempfile.TemporaryDirectory() as tmp:
+    out = Path(tmp)
+    (out / "config.json").write_text(json.dumps(cfg))
+    results = run(cfg, out, progress=False)
+    written = sorted(p.name for p in out.iterdir())
+    history = json.loads((out / "history.json").read_text())
+print("files written:", written)
+print("epochs trained:", len(history["epochs"]), "| best epoch:", history["best_epoch"] + 1)
+print("synthetic city test Recall@N:", {n: round(v, 3) for n, v in results["test"].items()})
+
+# %%
+fig, ax = plt.subplots(1, 2, figsize=(9, 3))
+x = [e["epoch"] + 1 for e in history["epochs"]]
+ax[0].plot(x, [e["loss"] for e in history["epochs"]], marker="o")
+ax[0].set(xlabel="epoch", ylabel="mean training loss", title="synthetic-city-triplet: loss")
+ax[1].plot(x, [e["val"]["1"] for e in history["epochs"]], marker="o", label="val R@1")
+ax[1].axhline(results["test"]["1"], color="k", ls="--", label="test R@1 (best-val weights)")
+ax[1].set(xlabel="epoch", ylim=(0, 1), title="Recall@1"); ax[1].legend()
+plt.tight_layout(); plt.show()
+
+# %% [markdown]
+# ## The papers' tables beside ours
+#
+# Published numbers (R@1 / R@5 / R@10, %) as collected in the course's reference notes: DW-T-Loss's
+# Tables II (four losses, VGG16 + NetVLAD-64) and III (max / mean pooling, T-Loss vs DW-T-Loss, "-W") on
+# Pittsburgh30k test, DINOv2-SALAD's and CliqueMining's headline numbers. The DW-T-Loss numbers are single
+# runs with no seed spread reported; notebook 03 prints them beside its multi-seed analogues and compares
+# rankings and gaps, never absolute values.
+
+# %%
+PAPER = [
+    # method, dataset, R@1, R@5, R@10, source
+    ("DINOv2-SALAD", "MSLS Challenge", 75.0, 88.8, 91.3, "SALAD, CVPR 2024"),
+    ("DINOv2-SALAD", "MSLS Val", 92.2, 96.4, 97.0, "SALAD, CVPR 2024"),
+    ("DINOv2-SALAD", "Nordland", 76.0, 89.2, 92.0, "SALAD, CVPR 2024"),
+    ("DINOv2-SALAD", "Pitts250k-test", 95.1, 98.5, 99.1, "SALAD, CVPR 2024"),
+    ("DINOv2-SALAD", "SPED", 92.1, 96.2, 96.5, "SALAD, CVPR 2024"),
+    ("SALAD + CliqueMining", "MSLS Challenge", 82.7, 91.2, None, "CliqueMining, ECCV 2024"),
+    ("SALAD + CliqueMining", "Nordland", 90.7, None, None, "CliqueMining, ECCV 2024"),
+    ("SALAD + CliqueMining", "MSLS Val", 94.2, None, None, "CliqueMining, ECCV 2024"),
+    ("VGG16 + NetVLAD-64, T-Loss", "Pitts30k-test", 81.21, 90.98, 93.59, "DW-T-Loss, Table II"),
+    ("VGG16 + NetVLAD-64, W-T-Loss", "Pitts30k-test", 81.10, 90.74, 93.31, "DW-T-Loss, Table II"),
+    ("VGG16 + NetVLAD-64, CE-Loss", "Pitts30k-test", 79.74, 90.26, 93.12, "DW-T-Loss, Table II"),
+    ("VGG16 + NetVLAD-64, DW-T-Loss", "Pitts30k-test", 82.64, 91.39, 93.72, "DW-T-Loss, Table II"),
+    ("VGG16 + max, T-Loss", "Pitts30k-test", 63.81, 81.59, 86.97, "DW-T-Loss, Table III"),
+    ("VGG16 + max, DW-T-Loss (Max-W)", "Pitts30k-test", 66.96, 82.83, 88.01, "DW-T-Loss, Table III"),
+    ("VGG16 + mean, T-Loss", "Pitts30k-test", 59.79, 80.49, 87.05, "DW-T-Loss, Table III"),
+    ("VGG16 + mean, DW-T-Loss (Mean-W)", "Pitts30k-test", 58.16, 78.61, 85.26, "DW-T-Loss, Table III"),
+]
+fmt = lambda v: "  -  " if v is None else f"{v:5.1f}"          # the tables' 4 digits rounded to 0.1 %
+print(f"{'method':38s} {'dataset':16s}   R@1   R@5  R@10  source")
+for method, data, r1, r5, r10, src in PAPER:
+    print(f"{method:38s} {data:16s} {fmt(r1)} {fmt(r5)} {fmt(r10)}  {src}")
+
+
+# %%
+def synthetic_results():
+    # the numbers notebooks 01-07 recorded in this `make reproduce` run (empty outside the report runner)
+    path = os.environ.get(RESULTS_ENV)
+    if not path or not Path(path).is_file():
+        return {}
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    return {r["notebook"]: r["results"] for r in rows}
+
+
+def real_results(folder):
+    # results.json files written by python -m vpr_nb.train --out results/<name>
+    return {p.parent.name: json.loads(p.read_text()) for p in sorted(Path(folder).glob("*/results.json"))}
+
+
+ours, real = synthetic_results(), real_results(RESULTS_DIR)
+if ours:
+    for nb, res in ours.items():
+        print(f"{nb}: {json.dumps(res)[:300]}")
+else:
+    print("Synthetic results of notebooks 01-07: shown when this notebook runs inside `make reproduce`,")
+    print("which executes the sequence in order and writes them to reports/results.md as well.")
+if real:
+    for name, res in real.items():
+        print(f"real-data run {name}: test Recall@N {res['test']}")
+else:
+    print(f"No real-data runs under {RESULTS_DIR}/ yet: run one of the commands above with --out results/<name>.")
+
+# %%
+fig, ax = plt.subplots(figsize=(7, 3))
+pairs = [("MSLS Challenge", 75.0, 82.7), ("Nordland", 76.0, 90.7), ("MSLS Val", 92.2, 94.2)]
+xs = np.arange(len(pairs))
+bars = [ax.bar(xs - 0.2, [p[1] for p in pairs], 0.4, label="DINOv2-SALAD"),
+        ax.bar(xs + 0.2, [p[2] for p in pairs], 0.4, label="+ CliqueMining")]
+for b in bars:
+    ax.bar_label(b, fmt="%.1f", fontsize=7)                  # the gaps are read from the labels
+ax.set_xticks(xs, [p[0] for p in pairs]); ax.set_ylim(0, 120); ax.set_yticks(range(0, 101, 20)); ax.set_ylabel("R@1 (%)")   # axis from 0
+ax.set_title("published gain of CliqueMining is largest on the densest dataset (Nordland)")
+ax.legend(loc="upper left", ncol=2, fontsize=8); plt.tight_layout(); plt.show()
+
+# %% [markdown]
+# ## Details that move the numbers, and what the presets do
+#
+# | detail | variants in public code | effect | presets here |
+# |---|---|---|---|
+# | triplet margin | 0.1 on distances (pytorch-NetVlad) vs 0.1 on squared distances / other values | changes which negatives are active | 0.1 on Euclidean distances (Eq. 3) |
+# | positives radius | train 10 m (non-trivial) vs 25 m, eval 25 m | training positives farther away are harder | train 10 m, eval 25 m (`.mat` thresholds for Pitts) |
+# | MSLS val queries | 740 official (subtask `all`, ≥ 1 positive) vs 747 loaded vs other subsets | ±1–3 points | `val_subset="official"` (740) |
+# | Nordland ground truth | ±1 frame (VPR-Bench / GSV-Cities `.npy`) vs 25 m / ±10 frames | ±10 frames gives 96 % instead of 90 % for the same model | ±1 frame (`protocol="1frame"`), the ECCV 2024 table's |
+# | image size | SALAD trains at 224, evaluates at 322 | evaluation size matters by ~1 point | 224 for training; override `data.image_size` to evaluate at 322 |
+# | precision | fp16 autocast (SALAD eval) vs fp32 | small | `train.amp=true` on GPU, fp32 on CPU |
+# | hard-negative cache | refreshed every 1000 queries (pytorch-NetVlad) vs per epoch | fresher negatives are harder | `source.cache_refresh=1000` for Pitts30k |
+
+# %%
+record("08_reproduction", {"synthetic-city-triplet (epochs=%d)" % epochs: {f"R@{n}": round(v, 3) for n, v in results["test"].items()}})
+
+
+# %% [markdown]
+# ## Graded exercise: an override by hand
+#
+# Write `apply_override(cfg, item)` that returns a *new* config (the input unchanged) with one
+# `"section.key=value"` applied, the value parsed as JSON when it parses (`"1e-3"` → `0.001`,
+# `"[1, 5]"` → a list) and kept as a string otherwise (`"triplet"`).
+
+# %% nbgrader={"grade": false, "grade_id": "ex-08-override", "locked": false, "schema_version": 3, "solution": true}
+def apply_override(cfg, item):
+    ### BEGIN SOLUTION
+    key, text = item.split("=", 1)
+    section, name = key.split(".", 1)
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        value = text
+    new = copy.deepcopy(cfg)
+    new[section][name] = value
+    return new
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-08-override-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+base = resolve_config("dwt-pitts30k")
+assert apply_override(base, "source.loss=triplet") == resolve_config("dwt-pitts30k", ["source.loss=triplet"])
+assert base == resolve_config("dwt-pitts30k"), "the input config must not change"
+### BEGIN HIDDEN TESTS
+assert apply_override(base, "train.ns=[1, 5]")["train"]["ns"] == [1, 5]
+assert apply_override(base, "train.lr=1e-3") == resolve_config("dwt-pitts30k", ["train.lr=1e-3"])
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Exercises
+#
+# 1. Run `python -m vpr_nb.train --preset synthetic-city-dw --out results/city-dw` and
+#    `--preset synthetic-city-triplet --out results/city-t`, then re-run this notebook: both runs appear
+#    in the real-data table (the folder is the same). Which loss wins, and is the gap bigger than the
+#    seed spread of notebook 03?
+# 2. Evaluate your run on the gmberton-format fixture:
+#    `python -m vpr_nb.evaluate --run results/city-t --set data.format=gmberton --set data.root=data_fixtures/gmberton/pitts30k --set data.image_size=[32,48] --out results/city-t-eval`.
+#    Why is the number meaningless (look at the fixture's size)?
+# 3. Change one detail of the table above in a preset (e.g. `--set source.num_negatives=5`) and predict
+#    the direction of the change before running it.
+#
+# ## Takeaways
+#
+# * A reproduction is a configuration: the presets encode each paper's data, model, batch source and
+#   optimiser, and every value can be overridden and is saved beside the results.
+# * The same loop trains the tiny synthetic world in a minute and the real datasets on GPUs (several
+#   with `torchrun`), so what the notebooks teach is what the real runs do.
+# * Published numbers depend on protocol details (query subsets, Nordland ground truth, image size);
+#   compare like with like, and say which protocol a number follows.
+#
+# ## References
+#
+# * *Distance-Ranking-Based Weighted Triplet Loss for Visual Place Recognition* (Xiong, Xu & Meng): the
+#   DW-T-Loss paper (VGG16 + NetVLAD, Pittsburgh30k). No public code was found; the course's reference notes
+#   do not hold a verified link, so none is given here.
+# * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (DINOv2-SALAD).
+#   CVPR 2024. [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code:
+#   [github.com/serizba/salad](https://github.com/serizba/salad).
+# * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place
+#   Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422); code:
+#   [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining).
+# * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
+#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247); code:
+#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad) (hard-negative cache, margin,
+#   Pittsburgh `dbStruct` files).
+# * K. Simonyan, A. Zisserman. *Very Deep Convolutional Networks for Large-Scale Image Recognition* (VGG16).
+#   ICLR 2015. [arXiv:1409.1556](https://arxiv.org/abs/1409.1556).
+# * M. Oquab et al. *DINOv2: Learning Robust Visual Features without Supervision.* TMLR 2024.
+#   [arXiv:2304.07193](https://arxiv.org/abs/2304.07193); code:
+#   [github.com/facebookresearch/dinov2](https://github.com/facebookresearch/dinov2).
+# * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition.*
+#   Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239); code:
+#   [github.com/amaralibey/gsv-cities](https://github.com/amaralibey/gsv-cities).
+# * F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
+#   Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020; code:
+#   [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
+# * G. Berton, R. Mereu, G. Trivigno, C. Masone, G. Csurka, T. Sattler, B. Caputo. *Deep Visual Geo-localization
+#   Benchmark.* CVPR 2022. [arXiv:2204.03444](https://arxiv.org/abs/2204.03444); code:
+#   [github.com/gmberton/deep-visual-geo-localization-benchmark](https://github.com/gmberton/deep-visual-geo-localization-benchmark),
+#   datasets: [github.com/gmberton/VPR-datasets-downloader](https://github.com/gmberton/VPR-datasets-downloader).
+# * N. Sünderhauf, P. Neubert, P. Protzel. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
+#   All Four Seasons.* ICRA 2013 Workshop on Long-Term Autonomy (Nordland).
