@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 PROFILE ?= reproduce
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with notebooks/sanitize.cfg --nbval-cell-timeout 600
 
-.PHONY: venv test test-fast reproduce pretrain lab bench clean assignments
+.PHONY: venv test test-fast lint reproduce pretrain notebook lab bench clean assignments
 
 venv: $(STAMP)
 
@@ -23,6 +23,12 @@ $(STAMP): environment.txt pyproject.toml
 test: venv
 	@test -x /usr/bin/chromium || echo "note: /usr/bin/chromium is missing, so the JupyterLab browser test is skipped (sudo apt-get install -y chromium)"
 	VPR_NB_ALLOW_SKIP_BROWSER=$$(test -x /usr/bin/chromium && echo 0 || echo 1) $(BIN)/python -m pytest -p no:cacheprovider -q tests notebooks $(NBVAL)
+
+# re-execute notebooks in place for committing: make notebook NB=06 (or NB="03 06"); syncs the jupytext
+# pair first and strips widget state (python -m vpr_nb.authoring)
+notebook: venv
+	@test -n "$(NB)" || { echo 'say which notebooks: make notebook NB=06 (or NB="03 06")'; exit 2; }
+	$(BIN)/python -m vpr_nb.authoring $(foreach n,$(NB),$(wildcard notebooks/$(n)_*.ipynb))
 
 test-fast: venv
 	$(BIN)/python -m pytest -p no:cacheprovider -q tests

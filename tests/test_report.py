@@ -128,6 +128,12 @@ def test_runner_end_to_end(tmp_path, monkeypatch):
     md = (out / "results.md").read_text()
     assert "| profile | ci |" in md and "| raw | 0.500 |" in md and "**failed**" in md
     assert RESULTS_ENV not in os.environ and os.environ["MPLBACKEND"] == "Agg"
+    # a second run over a subset leaves nothing of the first run's other notebooks behind
+    assert report.main(["--profile", "ci", "--out", str(out), "--notebooks-dir", str(nbdir),
+                        "--notebooks", "01_*.ipynb"]) == 1
+    assert sorted(p.name for p in (out / "notebooks").iterdir()) == ["01_fails.ipynb"]
+    assert list((out / "figures").iterdir()) == []
+    assert [nb["name"] for nb in json.loads((out / "results.json").read_text())["notebooks"]] == ["01_fails"]
 
 
 def test_runner_validates_arguments(tmp_path):

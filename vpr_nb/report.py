@@ -272,6 +272,9 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     (out / "notebooks").mkdir(parents=True, exist_ok=True)
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
+    # a run over a subset of the notebooks must not leave copies and figures of an earlier run beside it
+    for old in [*(out / "notebooks").glob("*.ipynb"), *fig_dir.glob("*.png"), out / "results.json", out / "results.md"]:
+        old.unlink(missing_ok=True)
     results_file = out / "results.jsonl"
     results_file.write_text("", encoding="utf-8")
     header = environment_header(profile)
@@ -279,9 +282,6 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     for src in sources:
         stem = src.stem
         out_nb = out / "notebooks" / src.name
-        out_nb.unlink(missing_ok=True)  # never report a stale copy from an earlier run
-        for old in fig_dir.glob(f"{stem}_*.png"):
-            old.unlink()
         print(f"[run ] {src.name} (profile {profile})", flush=True)
         entry = {"name": stem, **run_notebook(src, out_nb, profile, results_file)}
         entry["results"], line = _read_records(results_file, line)

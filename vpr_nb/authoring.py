@@ -1,0 +1,80 @@
+"""Re-execute a course notebook in place, the way its stored outputs are committed.
+
+    python -m vpr_nb.authoring notebooks/06_gds.ipynb [more notebooks ...]     (or: make notebook NB=06)
+
+For each notebook: sync it with its jupytext pair (``notebooks/NN_name.py``; the newer side wins),
+execute it top to bottom from a fresh kernel in the notebook's folder (``PROFILE`` as stored, i.e. the
+``ci`` profile), then :func:`clean` it and write it back. Stored notebooks must not carry what changes
+from run to run without saying anything: ipywidgets' saved widget state (40-66 KB of JSON per
+notebook, a new random model id on every run) and the widget view outputs that point at it, which a
+front end without that state shows as a raw ``interactive(children=...)`` text. A widget appears when
+the student runs its cell; nbval skips it (its cell is marked ``NBVAL_IGNORE_OUTPUT``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+WIDGET_VIEW = "application/vnd.jupyter.widget-view+json"
+
+
+def clean(nb):
+    """Drop the widget state from ``nb.metadata`` and every widget-view output; return ``nb`` (edited in place)."""
+    if "cells" not in nb or "metadata" not in nb:
+        raise ValueError("clean() expects an nbformat notebook (with 'cells' and 'metadata'); "
+                         "read it with nbformat.read(path, as_version=4)")
+    nb["metadata"].pop("widgets", None)
+    for cell in nb["cells"]:
+        if cell.get("cell_type") == "code":
+            cell["outputs"] = [o for o in cell.get("outputs", []) if WIDGET_VIEW not in o.get("data", {})]
+    return nb
+
+
+def has_widget_state(nb) -> bool:
+    """True if ``nb`` still carries saved widget state or a widget-view output (see :func:`clean`)."""
+    return "widgets" in nb["metadata"] or any(
+        WIDGET_VIEW in o.get("data", {}) for c in nb["cells"] if c.get("cell_type") == "code" for o in c.get("outputs", []))
+
+
+def execute_in_place(path, timeout: int = 600) -> float:
+    """Sync ``path`` with its jupytext pair, execute it, clean it, write it; return the seconds it ran."""
+    import jupytext
+    import nbformat
+    from jupytext.cli import jupytext as jupytext_cli
+    from nbclient import NotebookClient
+
+    path = Path(path)
+    if path.suffix != ".ipynb" or not path.is_file():
+        raise FileNotFoundError(f"no notebook at {path}: pass a notebooks/NN_name.ipynb file")
+    if not path.with_suffix(".py").is_file():
+        raise FileNotFoundError(f"{path.name} has no jupytext pair {path.with_suffix('.py').name}: create it with "
+                                f"`jupytext --set-formats ipynb,py:percent {path}`")
+    jupytext_cli(["--sync", "--quiet", str(path)])
+    nb = jupytext.read(path)  # the synced notebook, outputs and cell ids kept
+    t0 = time.perf_counter()
+    NotebookClient(nb, timeout=timeout, kernel_name="python3", store_widget_state=False,
+                   resources={"metadata": {"path": str(path.parent)}}).execute()
+    seconds = time.perf_counter() - t0
+    nbformat.write(clean(nb), path)
+    jupytext_cli(["--sync", "--quiet", str(path)])  # the script's timestamp follows the notebook's
+    return seconds
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m vpr_nb.authoring", description=__doc__.split("\n\n")[0])
+    parser.add_argument("notebooks", nargs="+", help="notebooks/NN_name.ipynb files to re-execute in place")
+    parser.add_argument("--timeout", type=int, default=600, help="seconds allowed per cell (default 600)")
+    args = parser.parse_args(argv)
+    for nb in args.notebooks:
+        try:
+            seconds = execute_in_place(nb, args.timeout)
+        except FileNotFoundError as exc:
+            parser.error(str(exc))
+        print(f"{nb}: executed in {seconds:.1f} s, cleaned, written", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
