@@ -20,7 +20,10 @@ $(STAMP): environment.txt pyproject.toml
 	touch $(STAMP)
 
 # The browser test needs Debian's chromium (.ci/run installs it); without it the test is skipped, with a note.
-test: venv
+lint: venv
+	$(BIN)/ruff check
+
+test: venv lint
 	@test -x /usr/bin/chromium || echo "note: /usr/bin/chromium is missing, so the JupyterLab browser test is skipped (sudo apt-get install -y chromium)"
 	VPR_NB_ALLOW_SKIP_BROWSER=$$(test -x /usr/bin/chromium && echo 0 || echo 1) $(BIN)/python -m pytest -p no:cacheprovider -q tests notebooks $(NBVAL)
 

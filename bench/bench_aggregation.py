@@ -107,7 +107,7 @@ def _memory_probe(variant: str, size: dict, device: str) -> None:
         return
 
     def status_kib(field: str) -> int:
-        line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith(field))
+        line = next(row for row in Path("/proc/self/status").read_text().splitlines() if row.startswith(field))
         return int(line.split()[1])
 
     Path("/proc/self/clear_refs").write_text("5")        # reset the peak resident set (VmHWM)

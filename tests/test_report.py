@@ -30,7 +30,7 @@ def test_record_appends_json_lines(monkeypatch, tmp_path):
     monkeypatch.setenv(RESULTS_ENV, str(path))
     record("01_x", {"R@1": np.float32(0.5), "ns": np.array([1, 5])})
     record("01_x", {"nested": {"a": 1}, "bad": float("nan")})
-    lines = [json.loads(l) for l in path.read_text().splitlines()]
+    lines = [json.loads(row) for row in path.read_text().splitlines()]
     assert lines[0] == {"notebook": "01_x", "results": {"R@1": 0.5, "ns": [1, 5]}}
     assert lines[1]["results"] == {"nested": {"a": 1}, "bad": "nan"}
 

@@ -111,7 +111,9 @@ def retrieval_grid(q_images, db_images, predictions, positives, query_ids: Seque
     for qi in query_ids:
         if not 0 <= qi < len(pred):
             raise ValueError(f"query id {qi} is out of range [0, {len(pred)})")
-        images.append(q_arr[qi]); titles.append(f"query {qi}"); frames.append("0.2")
+        images.append(q_arr[qi])
+        titles.append(f"query {qi}")
+        frames.append("0.2")
         pos = set(np.asarray(positives[qi]).tolist())
         for r in range(k):
             j = int(pred[qi, r])
