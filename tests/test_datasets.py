@@ -1,4 +1,5 @@
 """Tests of vpr_nb.datasets on the tiny real-format fixtures of data_fixtures/ and malformed variants of them."""
+import importlib
 import importlib.util
 import shutil
 import warnings
@@ -559,3 +560,81 @@ def test_recall_conventions_per_format():
         D.recall_convention("tokyo")
     split = D.TrainingSplit(D.load(FIX / "gmberton" / "pitts30k", "gmberton"), (8, 8))
     assert split.recall_convention == "all"
+
+
+# --------------------------------------------------------------------------------------------- package layout
+def test_registry_is_the_one_list_of_formats():
+    import vpr_nb.datasets as pkg
+
+    assert D.FORMATS == tuple(D.REGISTRY) == ("pitts", "gmberton", "msls", "gsv-cities", "nordland")
+    for name, spec in D.REGISTRY.items():
+        assert spec.name == name and spec.recall == D.recall_convention(name)
+        module = importlib.import_module(spec.loader.__module__)       # one module per format ...
+        assert module.__name__.startswith("vpr_nb.datasets.") and f'"{name}"' in module.__doc__
+        assert getattr(pkg, spec.loader.__name__) is spec.loader       # ... whose loader the package exports
+    assert D.REGISTRY["pitts"].options == ["images_root"]
+    assert D.REGISTRY["gsv-cities"].options == ["cities", "min_img_per_place", "images_root"]
+    assert D.FORMAT_RECALL["synthetic"] == "exclude" and set(D.FORMAT_RECALL) == set(D.FORMATS) | {"synthetic"}
+    with pytest.raises(ValueError, match="images_root is only used by the 'pitts' and 'gsv-cities' formats"):
+        D.load(FIX / "nordland", "nordland", images_root=FIX)
+
+
+def test_dataset_format_validates_its_loader():
+    def good(root, *, size=1, check_files=True):
+        return root
+
+    assert D.DatasetFormat("toy", good, recall="all").options == ["size"]
+    with pytest.raises(ValueError, match="recall must be one of"):
+        D.DatasetFormat("toy", good, recall="some")
+    with pytest.raises(ValueError, match="must take check_files"):
+        D.DatasetFormat("toy", lambda root: root, recall="all")
+    with pytest.raises(ValueError, match="first parameter must be the dataset location"):
+        D.DatasetFormat("toy", lambda *, check_files=True: None, recall="all")
+    with pytest.raises(ValueError, match="non-empty name"):
+        D.DatasetFormat("", good, recall="all")
+
+
+def test_one_region_aware_positives_for_every_split():
+    from vpr_nb.evaluation import positives_within
+
+    s = D.load(FIX / "msls", "msls", cities=["trondheim", "london", "amman"])
+    per_city = D.region_positives(s.db_utm, s.q_utm, 25.0, s.db_region, s.q_region, name=s.name)
+    assert _pos(s) == [p.tolist() for p in per_city]
+    for q, hits in enumerate(per_city):                              # never across cities
+        assert all(s.db_region[j] == s.q_region[q] for j in hits)
+    t = D.TrainingSplit(s, (8, 8))
+    assert [p.tolist() for p in t.positives()] == _pos(s) and [p.tolist() for p in t.positives(5.0)] == _pos(s, 5.0)
+    flat = D.region_positives(s.db_utm, s.q_utm, 25.0)              # without regions: the plain radius search
+    assert [p.tolist() for p in flat] == [p.tolist() for p in positives_within(s.db_utm, s.q_utm, 25.0)]
+    with pytest.raises(ValueError, match="gsv-cities has no queries"):
+        D.TrainingSplit(D.load(FIX / "gsv_cities", "gsv-cities"), (8, 8)).positives()
+    with pytest.raises(ValueError, match="one region per image"):
+        D.region_positives(s.db_utm, s.q_utm, 25.0, s.db_region[:1], s.q_region)
+    with pytest.raises(ValueError, match="geo must be a GeoSplit"):
+        D.TrainingSplit("x", (8, 8))
+
+
+def test_one_imagenet_normalisation_path():
+    from vpr_nb.evaluation import images_to_tensor, normalize_imagenet
+
+    s = D.load(FIX / "pitts" / "datasets" / "pitts30k_test.mat", "pitts")
+    raw = D.read_image(s.db_paths[0], (6, 8), normalize=False)
+    assert torch.equal(D.read_image(s.db_paths[0], (6, 8)), normalize_imagenet(raw))
+    u8 = D.ImageArray(s.db_paths[:2], (6, 8))[:]
+    assert torch.equal(images_to_tensor(u8), normalize_imagenet(torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255))
+    with pytest.raises(ValueError, match="float tensor with 3 channels"):
+        normalize_imagenet(torch.zeros(2, 4, 4, 3))
+    with pytest.raises(ValueError, match="scale uint8 images"):
+        normalize_imagenet(torch.zeros(3, 4, 4, dtype=torch.uint8))
+
+
+def test_public_names_and_wheel_packaging():
+    import tomllib
+
+    old_api = ["FORMATS", "GeoSplit", "ImageDataset", "read_image", "load", "load_pitts", "load_gmberton", "load_msls",
+               "load_gsv_cities", "load_nordland", "latlon_to_utm", "utm_zone", "parse_gmberton_name", "gsv_image_name",
+               "ImageArray", "TrainingSplit", "RECALL_CONVENTIONS", "FORMAT_RECALL", "recall_convention",
+               "find_unreadable_images", "drop_images", "MSLS_CITIES", "NORDLAND_PROTOCOLS", "IMAGE_SUFFIXES"]
+    assert set(old_api) <= set(D.__all__) and all(hasattr(D, n) for n in D.__all__)
+    pyproject = tomllib.loads((FIX.parent / "pyproject.toml").read_text())
+    assert "vpr_nb.datasets" in pyproject["tool"]["setuptools"]["packages"], "a wheel would ship without the package"

@@ -28,6 +28,18 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
+def normalize_imagenet(x: torch.Tensor) -> torch.Tensor:
+    """``(x - mean) / std`` per channel with the ImageNet statistics (:data:`IMAGENET_MEAN`,
+    :data:`IMAGENET_STD`), for float images in [0, 1] with channels at dim -3 (``(3, H, W)`` or
+    ``(N, 3, H, W)``). The one normalisation path of the package: :func:`images_to_tensor` and
+    :func:`vpr_nb.datasets.read_image` both end here."""
+    if not isinstance(x, torch.Tensor) or not x.is_floating_point() or x.ndim < 3 or x.shape[-3] != 3:
+        got = f"{x.dtype} of shape {tuple(x.shape)}" if isinstance(x, torch.Tensor) else type(x).__name__
+        raise ValueError(f"normalize_imagenet needs a float tensor with 3 channels at dim -3, got {got}; "
+                         f"scale uint8 images to [0, 1] first (images_to_tensor does both)")
+    return (x - torch.tensor(IMAGENET_MEAN).view(3, 1, 1)) / torch.tensor(IMAGENET_STD).view(3, 1, 1)
+
+
 def positives_within(db_utm, q_utm, radius: float) -> list[np.ndarray]:
     """Database indices within ``radius`` metres of each query (inclusive), sorted ascending.
 
@@ -132,9 +144,7 @@ def images_to_tensor(images) -> torch.Tensor:
     if arr.dtype != np.uint8:
         raise ValueError(f"images must be uint8 in [0, 255], got dtype {arr.dtype}")
     x = torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2).float().div_(255.0)
-    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
-    return (x - mean) / std
+    return normalize_imagenet(x)
 
 
 def as_image_array(images):

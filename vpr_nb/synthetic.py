@@ -201,9 +201,11 @@ class VPRDataset:
         return self.split("test")
 
     def positives(self, radius: float | None = None) -> list[np.ndarray]:
-        """Database positives of every query within ``radius`` (default ``pos_radius``)."""
-        from .evaluation import positives_within
-        return positives_within(self.db_utm, self.q_utm, self.pos_radius if radius is None else radius)
+        """Database positives of every query within ``radius`` (default ``pos_radius``): the search shared
+        with the real splits, :func:`vpr_nb.datasets.region_positives` (one region: one UTM frame here)."""
+        from .datasets.positives import region_positives
+        return region_positives(self.db_utm, self.q_utm, self.pos_radius if radius is None else radius,
+                                name=self.name)
 
 
 # ----------------------------------------------------------------------------------------------
