@@ -466,3 +466,80 @@ def test_miner_rejects(case):
 def test_miner_rejects_negative_epsilon():
     with pytest.raises(ValueError, match="epsilon"):
         multi_similarity_miner(**_ms_args(epsilon=-0.1))
+
+
+# ----------------------------------------------------------------------------------------------
+# loss objects: their parameters held and validated; the same numbers as the functions
+# ----------------------------------------------------------------------------------------------
+def test_loss_objects_compute_exactly_the_functions(random_triplets):
+    from vpr_nb import losses as L
+    q, p, n = random_triplets
+    geo = torch.tensor([0.0, 3.0, 12.5, 24.0])
+    cases = [(L.TripletLoss(margin=0.3), triplet_loss(q, p, n, 0.3)),
+             (L.WeightedTripletLoss(margin=0.3, sigma=30.0, eps=0.5), weighted_triplet_loss(q, p, n, geo, 0.3, 30.0, 0.5)),
+             (L.CETripletLoss(), ce_triplet_loss(q, p, n)),
+             (L.DWTripletLoss(sigma=30.0, eps=0.5), dw_triplet_loss(q, p, n, geo, 30.0, 0.5))]
+    for loss, want in cases:
+        assert isinstance(loss, L.TripletFamilyLoss)
+        assert torch.equal(loss(q, p, n, geo), want), loss
+
+
+def test_ms_loss_object_computes_exactly_the_functions(ms_batch):
+    from vpr_nb import losses as L
+    emb, labels = ms_batch
+    pairs = multi_similarity_miner(emb, labels, 0.2)
+    assert torch.equal(L.MultiSimilarityLoss(2.0, 40.0, 0.5, 0.2)(emb, labels),
+                       multi_similarity_loss(emb, labels, 2.0, 40.0, 0.5, miner_pairs=pairs))
+    assert torch.equal(L.MultiSimilarityLoss(miner_epsilon=None)(emb, labels), multi_similarity_loss(emb, labels))
+
+
+def test_loss_objects_share_the_functions_defaults():
+    import inspect
+
+    from vpr_nb import losses as L
+
+    def defaults(f):
+        return {k: v.default for k, v in inspect.signature(f).parameters.items() if v.default is not inspect._empty}
+    assert L.TripletLoss().margin == defaults(triplet_loss)["margin"]
+    w = L.WeightedTripletLoss()
+    assert (w.margin, w.sigma, w.eps) == tuple(defaults(weighted_triplet_loss)[k] for k in ("margin", "sigma", "eps"))
+    assert (L.DWTripletLoss().sigma, L.DWTripletLoss().eps) == tuple(defaults(distance_weight).values())
+    ms, f = L.MultiSimilarityLoss(), defaults(multi_similarity_loss)
+    assert (ms.alpha, ms.beta, ms.base) == (f["alpha"], f["beta"], f["base"])
+    assert ms.miner_epsilon == defaults(multi_similarity_miner)["epsilon"]
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda L: L.TripletLoss(margin=-0.1), "margin must be non-negative"),
+    (lambda L: L.TripletLoss(margin="big"), "margin must be a number"),
+    (lambda L: L.WeightedTripletLoss(sigma=0.0), "sigma must be positive"),
+    (lambda L: L.WeightedTripletLoss(eps=float("nan")), "eps must be finite"),
+    (lambda L: L.DWTripletLoss(eps=-1.0), "eps must be positive"),
+    (lambda L: L.MultiSimilarityLoss(alpha=0.0), "alpha must be positive"),
+    (lambda L: L.MultiSimilarityLoss(beta=-1.0), "beta must be positive"),
+    (lambda L: L.MultiSimilarityLoss(base=float("inf")), "base"),
+    (lambda L: L.MultiSimilarityLoss(miner_epsilon=-0.1), "miner_epsilon"),
+])
+def test_loss_objects_validate_their_parameters(make, match):
+    from vpr_nb import losses as L
+    with pytest.raises(ValueError, match=match):
+        make(L)
+
+
+def test_weighted_loss_objects_need_the_geographic_distances(random_triplets):
+    from vpr_nb import losses as L
+    q, p, n = random_triplets
+    for loss in (L.WeightedTripletLoss(), L.DWTripletLoss()):
+        with pytest.raises(ValueError, match="needs geo_qp"):
+            loss(q, p, n)
+    assert torch.equal(L.TripletLoss()(q, p, n), triplet_loss(q, p, n))      # geo_qp unused, may be left out
+
+
+def test_loss_objects_are_immutable_values():
+    import dataclasses
+
+    from vpr_nb import losses as L
+    loss = L.DWTripletLoss(sigma=25)
+    assert loss == L.DWTripletLoss(sigma=25.0) and repr(loss) == "DWTripletLoss(sigma=25.0, eps=0.1)"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        loss.sigma = 30.0

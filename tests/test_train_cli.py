@@ -113,6 +113,27 @@ def test_overrides_are_parsed_by_type_and_checked():
         C.RunConfig.from_dict(dict(cfg.to_dict(), source={"nope": 1}))
 
 
+def test_the_loss_registry_maps_each_name_to_its_object():
+    """One place maps source.loss to a loss object; its parameters are the SourceConfig fields of the same names."""
+    import inspect
+
+    from vpr_nb import losses as L
+    source_fields = {f.name for f in fields(C.SourceConfig)}
+    for name, cls in C.LOSSES.items():
+        assert set(inspect.signature(cls).parameters) <= source_fields, name
+    assert C.TRIPLET_LOSSES == ("triplet", "weighted", "ce", "dw")
+    s = C.resolve("dwt-pitts30k", ["source.sigma=30", "source.eps=0.5"]).source
+    assert C.build_loss(s) == L.DWTripletLoss(sigma=30.0, eps=0.5)
+    assert C.build_loss(C.resolve("dwt-pitts30k", ["source.loss=weighted", "source.margin=0.2"]).source) == \
+        L.WeightedTripletLoss(margin=0.2, sigma=800.0, eps=0.1)
+    assert C.build_loss(C.resolve("salad-gsv", ["source.miner_epsilon=none"]).source) == \
+        L.MultiSimilarityLoss(miner_epsilon=None)
+    with pytest.raises(ValueError, match="source.loss must be one of"):
+        C.build_loss(C.SourceConfig(loss="contrastive"))
+    with pytest.raises(ValueError, match="source: miner_epsilon"):
+        C.validate(C.resolve("synthetic-city-triplet", ["source.kind=places", "source.miner_epsilon=-1"]))
+
+
 def test_the_whole_config_is_validated_before_any_data(tmp_path, capsys):
     for sets, match in [(["data.format=tokyo"], "data.format must be one of"),
                         (["source.sampler=nearest"], "source.sampler must be one of"),

@@ -6,6 +6,7 @@ A run is a :class:`RunConfig` of five sections, each a dataclass that holds ever
   which tests, image checks;
 - ``model``  (:class:`ModelConfig`): backbone and aggregator (``vpr_nb.models.build_model``);
 - ``source`` (:class:`SourceConfig`): how batches and the loss are formed (NetVLAD triplets or places);
+  :data:`LOSSES` maps the loss name to its :mod:`vpr_nb.losses` object (:func:`build_loss`);
 - ``train``  (:class:`vpr_nb.training.TrainConfig`): optimiser, schedule, epochs, seed, AMP;
 - ``eval``   (:class:`EvalConfig`): Recall@N values, evaluation image size, Recall@N convention.
 
@@ -34,6 +35,7 @@ A config whose val and test are the same data is refused: the best epoch would b
 from __future__ import annotations
 
 import copy
+import inspect
 import json
 import math
 import os
@@ -44,13 +46,25 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .training import SCHEDULERS, TRIPLET_LOSSES, OPTIMIZERS, TrainConfig  # noqa: F401 (re-exported choices)
+from . import losses as L
+from .training import SCHEDULERS, OPTIMIZERS, TrainConfig  # noqa: F401 (re-exported choices)
 
 REAL_FORMATS = ("pitts", "gmberton", "msls", "gsv-cities", "nordland")
 DATA_FORMATS = ("synthetic",) + REAL_FORMATS
 SAMPLERS = ("random", "clique", "clique+random")
 CHECK_IMAGES = ("skip", "fail", "off")
 RECALL_CHOICES = ("auto", "all", "exclude")
+
+# The one map from a loss name to its loss object: build_loss(source config) builds the class with the
+# SourceConfig fields named as its parameters (e.g. "weighted" reads source.margin, source.sigma, source.eps).
+LOSSES = {
+    "triplet": L.TripletLoss,                 # Eq. (3) of DW-T-Loss
+    "weighted": L.WeightedTripletLoss,        # Eq. (4) x Eq. (3), W-T-Loss
+    "ce": L.CETripletLoss,                    # Eqs. (5)-(8), CE-Loss
+    "dw": L.DWTripletLoss,                    # Eq. (9), DW-T-Loss
+    "multi-similarity": L.MultiSimilarityLoss,  # Wang et al. Eq. (6) + miner: the loss of source.kind="places"
+}
+TRIPLET_LOSSES = tuple(k for k, cls in LOSSES.items() if issubclass(cls, L.TripletFamilyLoss))
 
 
 # ================================================================================================ sections
@@ -101,14 +115,14 @@ class SourceConfig:
 
     kind: str = "triplet"
     # --- triplets (NetVLAD / DW-T-Loss)
-    loss: str = "triplet"                     # triplet | weighted | ce | dw
+    loss: str = "triplet"                     # triplet | weighted | ce | dw (kind="places": multi-similarity)
     batch_size: int = 16                      # queries per optimiser step
     num_negatives: int = 5
     num_candidates: int = 300
     cache_refresh: int | None = None          # queries between descriptor-cache refreshes (None: per epoch)
-    margin: float = 0.1
-    sigma: float = 800.0
-    eps: float = 0.1
+    margin: float = L.DEFAULT_MARGIN          # Eq. (3) margin (losses triplet, weighted)
+    sigma: float = L.DEFAULT_SIGMA            # Eq. (4) sigma, metres (losses weighted, dw)
+    eps: float = L.DEFAULT_EPS                # Eq. (4) eps (losses weighted, dw)
     max_heading_diff: float | None = None
     neg_radius: float | None = None
     # --- places (GSV-Cities / SALAD / CliqueMining)
@@ -122,10 +136,10 @@ class SourceConfig:
     same_place_threshold: float = 25.0
     similar_groups: int = 15
     refresh_every: int | None = None          # epochs between clique descriptor refreshes (None: once)
-    alpha: float = 1.0
-    beta: float = 50.0
-    base: float = 0.0
-    miner_epsilon: float | None = 0.1
+    alpha: float = L.DEFAULT_MS_ALPHA         # Multi-Similarity loss (Wang et al. Eq. 6)
+    beta: float = L.DEFAULT_MS_BETA
+    base: float = L.DEFAULT_MS_BASE
+    miner_epsilon: float | None = L.DEFAULT_MS_MINER_EPSILON   # None: every pair, no mining
 
 
 @dataclass
@@ -510,6 +524,10 @@ def validate(cfg: RunConfig, *, for_training: bool = True) -> None:
     for k in ("margin", "sigma", "eps", "same_place_threshold", "beta", "alpha"):
         if getattr(s, k) < 0 or (k in ("sigma", "eps", "same_place_threshold", "alpha", "beta") and getattr(s, k) == 0):
             raise ValueError(f"source.{k} must be positive, got {getattr(s, k)}")
+    try:
+        build_loss(s)                         # the loss object checks its own parameters (base, miner_epsilon, ...)
+    except ValueError as exc:
+        raise ValueError(f"source: {exc}") from None
     _check_choice(m.backbone, ("small_cnn", "vgg16", "dinov2"), "model.backbone")
     from .aggregation import AGGREGATOR_NAMES
     _check_choice(m.aggregator, AGGREGATOR_NAMES, "model.aggregator")
@@ -836,15 +854,27 @@ class MixedSampler:
         self.clique_part.load_state_dict(state)
 
 
+def build_loss(s: SourceConfig):
+    """The loss object of a source config, from :data:`LOSSES`: ``source.loss`` for ``kind="triplet"``,
+    Multi-Similarity for ``kind="places"``; its parameters are the SourceConfig fields of the same names."""
+    if not isinstance(s, SourceConfig):
+        raise ValueError(f"build_loss needs a SourceConfig, got {type(s).__name__}")
+    name = s.loss if s.kind == "triplet" else "multi-similarity"
+    if name not in TRIPLET_LOSSES + ("multi-similarity",):
+        raise ValueError(f"source.loss must be one of {TRIPLET_LOSSES}, got {name!r}")
+    cls = LOSSES[name]
+    return cls(**{k: getattr(s, k) for k in inspect.signature(cls).parameters})
+
+
 def build_source(cfg: RunConfig, train_split, extra_split=None):
     """The batch source of ``cfg.source`` on ``train_split`` (``extra_split``: the GSV-Cities pool of
     ``sampler="clique+random"``). Returns ``(source, steps_per_epoch)``."""
     from .training import PlaceBatchSource, TripletSource
     s = cfg.source
     if s.kind == "triplet":
-        src = TripletSource(train_split, s.loss, batch_size=s.batch_size, num_negatives=s.num_negatives,
-                            num_candidates=s.num_candidates, cache_refresh=s.cache_refresh, margin=s.margin,
-                            sigma=s.sigma, eps=s.eps, max_heading_diff=s.max_heading_diff, neg_radius=s.neg_radius)
+        src = TripletSource(train_split, build_loss(s), batch_size=s.batch_size, num_negatives=s.num_negatives,
+                            num_candidates=s.num_candidates, cache_refresh=s.cache_refresh,
+                            max_heading_diff=s.max_heading_diff, neg_radius=s.neg_radius)
         return src, steps_per_epoch(cfg, num_queries=len(train_split.q_images))
     images, groups, utm, regions = _place_pool(train_split)
     k = s.images_per_place
@@ -869,7 +899,7 @@ def build_source(cfg: RunConfig, train_split, extra_split=None):
         clique = CliqueSampler(images, groups, utm, regions, s, per_epoch, n_c)
         make = MixedSampler(rand, clique, len(images))
         images = ImageArray(images.paths + g_images.paths, images.size)
-    src = PlaceBatchSource(images, make, alpha=s.alpha, beta=s.beta, base=s.base, miner_epsilon=s.miner_epsilon)
+    src = PlaceBatchSource(images, make, loss=build_loss(s))
     return src, per_epoch
 
 
@@ -1068,4 +1098,4 @@ def evaluate_run(cfg: RunConfig, checkpoint, out=None, *, predictions: bool = Fa
 __all__ = ["DataConfig", "ModelConfig", "SourceConfig", "EvalConfig", "RunConfig", "PRESETS", "SECTIONS",
            "resolve", "with_overrides", "validate", "split_spec", "check_val_test", "build", "build_checked",
            "steps_per_epoch", "optimizer_steps", "load_split", "build_source", "train_run", "evaluate_run",
-           "OutputFolder", "parse_value"]
+           "OutputFolder", "parse_value", "LOSSES", "TRIPLET_LOSSES", "build_loss"]

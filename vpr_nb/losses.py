@@ -27,9 +27,26 @@ Conventions of the triplet family:
 
 Multi-Similarity (Wang et al., CVPR 2019), as used to train SALAD and CliqueMining through
 pytorch-metric-learning: :func:`multi_similarity_loss` and :func:`multi_similarity_miner`.
+
+Loss objects, for the batch sources of :mod:`vpr_nb.training`: each holds its parameters, validated when
+it is built, and calls the function above with them (the same floating-point operations):
+
+==============================  ==============  ============================================  ===============
+object                          paper equation  parameters                                    source
+==============================  ==============  ============================================  ===============
+:class:`TripletLoss`            Eq. (3)         ``margin``                                    TripletSource
+:class:`WeightedTripletLoss`    Eq. (4) x (3)   ``margin``, ``sigma``, ``eps``                TripletSource
+:class:`CETripletLoss`          Eqs. (5)-(8)    (none)                                        TripletSource
+:class:`DWTripletLoss`          Eq. (9)         ``sigma``, ``eps``                            TripletSource
+:class:`MultiSimilarityLoss`    Wang Eq. (6)    ``alpha``, ``beta``, ``base``, ``miner_epsilon``  PlaceBatchSource
+==============================  ==============  ============================================  ===============
+
+Every default value lives once, in the ``DEFAULT_*`` constants below, which both the functions and the
+classes use.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -46,7 +63,22 @@ __all__ = [
     "dw_triplet_loss",
     "multi_similarity_loss",
     "multi_similarity_miner",
+    "TripletFamilyLoss",
+    "TripletLoss",
+    "WeightedTripletLoss",
+    "CETripletLoss",
+    "DWTripletLoss",
+    "MultiSimilarityLoss",
 ]
+
+# Every default of this module, in one place (the functions' and the loss classes' signatures use them).
+DEFAULT_MARGIN = 0.1           # Eq. (3) margin m, on plain L2 distances (the paper's value)
+DEFAULT_SIGMA = 800.0          # Eq. (4) sigma, metres: the weight is 0 at this query-positive distance
+DEFAULT_EPS = 0.1              # Eq. (4) eps: the weight at 0 m is 1 / eps
+DEFAULT_MS_ALPHA = 1.0         # Multi-Similarity alpha (positive pairs), Wang et al. Eq. (6)
+DEFAULT_MS_BETA = 50.0         # Multi-Similarity beta (negative pairs)
+DEFAULT_MS_BASE = 0.0          # Multi-Similarity threshold lambda
+DEFAULT_MS_MINER_EPSILON = 0.1 # Multi-Similarity miner margin epsilon (Sec. 3.3); None in a loss: no mining
 
 _REDUCTIONS = ("sum", "mean", "none")
 
@@ -185,6 +217,17 @@ def _pair_masks_from_miner(miner_pairs: Sequence, labels: torch.Tensor) -> tuple
     return pos, neg
 
 
+def _check_base(base) -> float:
+    """The Multi-Similarity threshold lambda as a finite float."""
+    try:
+        base = float(base)
+    except (TypeError, ValueError):
+        raise ValueError(f"base (the similarity threshold lambda) must be a number, got {base!r}") from None
+    if not np.isfinite(base):
+        raise ValueError(f"base (the similarity threshold lambda) must be finite, got {base}")
+    return base
+
+
 def _log_one_plus_sum_exp(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Row-wise ``log(1 + sum_{j in mask} exp(x_ij))``, stable: logsumexp with an appended 0."""
     x = x.masked_fill(~mask, float("-inf"))
@@ -195,7 +238,7 @@ def _log_one_plus_sum_exp(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 # ----------------------------------------------------------------------------------------------
 # triplet family (Xiong, Xu, Meng)
 # ----------------------------------------------------------------------------------------------
-def triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, margin: float = 0.1,
+def triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, margin: float = DEFAULT_MARGIN,
                  reduction: str = "sum") -> torch.Tensor:
     """Triplet margin loss, Eq. (3) of DW-T-Loss: ``sum max(0, d(q,p) - d(q,n) + margin)``.
 
@@ -208,7 +251,7 @@ def triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, margin: floa
     return _reduce(F.relu(d_qp - d_qn + margin), single, reduction)
 
 
-def distance_weight(geo_qp, sigma: float = 800.0, eps: float = 0.1):
+def distance_weight(geo_qp, sigma: float = DEFAULT_SIGMA, eps: float = DEFAULT_EPS):
     """Geographic weight of a query-positive pair, Eq. (4) of DW-T-Loss.
 
     ``w = (1 + eps) / (geo_qp / sigma + eps) - 1`` decreases with distance: ``w = 1 / eps`` at 0 m
@@ -238,8 +281,9 @@ def distance_weight(geo_qp, sigma: float = 800.0, eps: float = 0.1):
     return (1.0 + eps) / (geo / sigma + eps) - 1.0
 
 
-def weighted_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp, margin: float = 0.1,
-                          sigma: float = 800.0, eps: float = 0.1, reduction: str = "sum") -> torch.Tensor:
+def weighted_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp,
+                          margin: float = DEFAULT_MARGIN, sigma: float = DEFAULT_SIGMA, eps: float = DEFAULT_EPS,
+                          reduction: str = "sum") -> torch.Tensor:
     """W-T-Loss: Eq. (4) weight times Eq. (3) hinge, ``sum w(geo_qp) * max(0, d(q,p) - d(q,n) + margin)``.
 
     Each query's weight (from its ``(B,)`` query-positive distance in metres) multiplies all M of
@@ -263,8 +307,8 @@ def ce_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, reduction
     return _reduce(F.softplus(d_qp - d_qn), single, reduction)
 
 
-def dw_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp, sigma: float = 800.0,
-                    eps: float = 0.1, reduction: str = "sum") -> torch.Tensor:
+def dw_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp, sigma: float = DEFAULT_SIGMA,
+                    eps: float = DEFAULT_EPS, reduction: str = "sum") -> torch.Tensor:
     """DW-T-Loss, Eq. (9): ``sum -w(geo_qp) * log d_hat_n`` (Eq. (4) weight times Eqs. (5)-(8)).
 
     Weights are negative for ``geo_qp > sigma`` (see :func:`distance_weight`).
@@ -278,8 +322,9 @@ def dw_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp, s
 # ----------------------------------------------------------------------------------------------
 # Multi-Similarity (Wang et al., CVPR 2019), as used by SALAD / CliqueMining
 # ----------------------------------------------------------------------------------------------
-def multi_similarity_loss(embeddings: torch.Tensor, labels, alpha: float = 1.0, beta: float = 50.0,
-                          base: float = 0.0, miner_pairs: MinerPairs | None = None) -> torch.Tensor:
+def multi_similarity_loss(embeddings: torch.Tensor, labels, alpha: float = DEFAULT_MS_ALPHA,
+                          beta: float = DEFAULT_MS_BETA, base: float = DEFAULT_MS_BASE,
+                          miner_pairs: MinerPairs | None = None) -> torch.Tensor:
     """Multi-Similarity loss (Eq. (6) of Wang et al.) on dot-product similarities ``S = E E^T``.
 
     For each anchor i with positives P_i and negatives N_i (all pairs, or only ``miner_pairs``)::
@@ -299,12 +344,7 @@ def multi_similarity_loss(embeddings: torch.Tensor, labels, alpha: float = 1.0, 
     labels = _check_labels(labels, embeddings.shape[0], embeddings.device)
     alpha = check_positive(alpha, "alpha")
     beta = check_positive(beta, "beta")
-    try:
-        base = float(base)
-    except (TypeError, ValueError):
-        raise ValueError(f"base (the similarity threshold lambda) must be a number, got {base!r}") from None
-    if not np.isfinite(base):
-        raise ValueError(f"base (the similarity threshold lambda) must be finite, got {base}")
+    base = _check_base(base)
     if miner_pairs is None:
         pos_mask, neg_mask = _all_pair_masks(labels)
     else:
@@ -315,7 +355,7 @@ def multi_similarity_loss(embeddings: torch.Tensor, labels, alpha: float = 1.0, 
     return (pos_term + neg_term).mean()
 
 
-def multi_similarity_miner(embeddings: torch.Tensor, labels, epsilon: float = 0.1) -> MinerPairs:
+def multi_similarity_miner(embeddings: torch.Tensor, labels, epsilon: float = DEFAULT_MS_MINER_EPSILON) -> MinerPairs:
     """Multi-Similarity pair mining (Sec. 3.3 of Wang et al.) on cosine similarities.
 
     Keeps the negative (i, n) if ``S_in + epsilon > min_p S_ip`` and the positive (i, p) if
@@ -335,3 +375,115 @@ def multi_similarity_miner(embeddings: torch.Tensor, labels, epsilon: float = 0.
         a1, p = torch.nonzero(pos_mask & (sim - epsilon < hardest_neg), as_tuple=True)
         a2, n = torch.nonzero(neg_mask & (sim + epsilon > hardest_pos), as_tuple=True)
     return a1, p, a2, n
+
+
+# ----------------------------------------------------------------------------------------------
+# loss objects: the parameters of a loss held and validated in one place, for the batch sources
+# ----------------------------------------------------------------------------------------------
+class TripletFamilyLoss:
+    """A loss of DW-T-Loss's triplet family, called as ``loss(q, p, n, geo_qp)`` -> the summed loss.
+
+    ``q``, ``p`` are ``(B, D)``, ``n`` is ``(B, D)`` or ``(B, M, D)`` and ``geo_qp`` the ``(B,)``
+    query-positive distances in metres (read only by the distance-weighted losses, Eq. (4)). The
+    reduction is the paper's sum over all triplets; :class:`vpr_nb.training.TripletSource` divides it by
+    the number of queries. Subclasses: :class:`TripletLoss`, :class:`WeightedTripletLoss`,
+    :class:`CETripletLoss`, :class:`DWTripletLoss`.
+    """
+
+    def __call__(self, q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp=None) -> torch.Tensor:
+        raise NotImplementedError
+
+
+def _check_geo_given(loss, geo_qp) -> None:
+    if geo_qp is None:
+        raise ValueError(f"{type(loss).__name__} weights each query by Eq. (4) and needs geo_qp, the (B,) "
+                         f"query-positive distances in metres: call loss(q, p, n, geo_qp)")
+
+
+@dataclass(frozen=True)
+class TripletLoss(TripletFamilyLoss):
+    """T-Loss, Eq. (3) of DW-T-Loss: ``sum max(0, d(q,p) - d(q,n) + margin)`` (see :func:`triplet_loss`).
+
+    ``margin`` >= 0, on plain (not squared) L2 distances. ``geo_qp`` is accepted and not used.
+    """
+
+    margin: float = DEFAULT_MARGIN
+
+    def __post_init__(self):
+        object.__setattr__(self, "margin", check_positive(self.margin, "margin", allow_zero=True))
+
+    def __call__(self, q, p, n, geo_qp=None):
+        return triplet_loss(q, p, n, self.margin)
+
+
+@dataclass(frozen=True)
+class WeightedTripletLoss(TripletFamilyLoss):
+    """W-T-Loss, Eq. (4) x Eq. (3): ``sum w(geo_qp) * max(0, d(q,p) - d(q,n) + margin)``
+    (see :func:`weighted_triplet_loss`; ``w`` is :func:`distance_weight` with ``sigma`` > 0, ``eps`` > 0)."""
+
+    margin: float = DEFAULT_MARGIN
+    sigma: float = DEFAULT_SIGMA
+    eps: float = DEFAULT_EPS
+
+    def __post_init__(self):
+        object.__setattr__(self, "margin", check_positive(self.margin, "margin", allow_zero=True))
+        object.__setattr__(self, "sigma", check_positive(self.sigma, "sigma"))
+        object.__setattr__(self, "eps", check_positive(self.eps, "eps"))
+
+    def __call__(self, q, p, n, geo_qp=None):
+        _check_geo_given(self, geo_qp)
+        return weighted_triplet_loss(q, p, n, geo_qp, self.margin, self.sigma, self.eps)
+
+
+@dataclass(frozen=True)
+class CETripletLoss(TripletFamilyLoss):
+    """CE-Loss, Eqs. (5)-(8) of DW-T-Loss: ``sum -log d_hat_n = sum softplus(d(q,p) - d(q,n))``
+    (see :func:`ce_triplet_loss`). No parameters; ``geo_qp`` is accepted and not used."""
+
+    def __call__(self, q, p, n, geo_qp=None):
+        return ce_triplet_loss(q, p, n)
+
+
+@dataclass(frozen=True)
+class DWTripletLoss(TripletFamilyLoss):
+    """DW-T-Loss, Eq. (9): ``sum -w(geo_qp) * log d_hat_n``, the Eq. (4) weight times Eqs. (5)-(8)
+    (see :func:`dw_triplet_loss`; ``sigma`` > 0, ``eps`` > 0)."""
+
+    sigma: float = DEFAULT_SIGMA
+    eps: float = DEFAULT_EPS
+
+    def __post_init__(self):
+        object.__setattr__(self, "sigma", check_positive(self.sigma, "sigma"))
+        object.__setattr__(self, "eps", check_positive(self.eps, "eps"))
+
+    def __call__(self, q, p, n, geo_qp=None):
+        _check_geo_given(self, geo_qp)
+        return dw_triplet_loss(q, p, n, geo_qp, self.sigma, self.eps)
+
+
+@dataclass(frozen=True)
+class MultiSimilarityLoss:
+    """Multi-Similarity loss (Wang et al., CVPR 2019, Eq. (6)) over a batch of places, called as
+    ``loss(embeddings, labels)``; with ``miner_epsilon`` the pairs are first mined (Sec. 3.3,
+    :func:`multi_similarity_miner`), with ``None`` every pair counts (:func:`multi_similarity_loss`).
+
+    ``alpha`` > 0 and ``beta`` > 0 weight the positive and negative pairs, ``base`` is the threshold
+    lambda, ``miner_epsilon`` >= 0 or ``None``. The SALAD / GSV-Cities recipe is the default.
+    """
+
+    alpha: float = DEFAULT_MS_ALPHA
+    beta: float = DEFAULT_MS_BETA
+    base: float = DEFAULT_MS_BASE
+    miner_epsilon: float | None = DEFAULT_MS_MINER_EPSILON
+
+    def __post_init__(self):
+        object.__setattr__(self, "alpha", check_positive(self.alpha, "alpha"))
+        object.__setattr__(self, "beta", check_positive(self.beta, "beta"))
+        object.__setattr__(self, "base", _check_base(self.base))
+        if self.miner_epsilon is not None:
+            object.__setattr__(self, "miner_epsilon", check_positive(
+                self.miner_epsilon, "miner_epsilon (None: no mining)", allow_zero=True))
+
+    def __call__(self, embeddings: torch.Tensor, labels) -> torch.Tensor:
+        pairs = None if self.miner_epsilon is None else multi_similarity_miner(embeddings, labels, self.miner_epsilon)
+        return multi_similarity_loss(embeddings, labels, self.alpha, self.beta, self.base, miner_pairs=pairs)

@@ -141,6 +141,7 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> tuple[SmallCNN, dict
     from .aggregation import GeM
     from .mining import random_place_batches
     from .models import VPRModel
+    from .losses import MultiSimilarityLoss
     from .training import PlaceBatchSource, TrainConfig, train
 
     t0 = time.perf_counter()
@@ -154,7 +155,7 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> tuple[SmallCNN, dict
         return random_place_batches(labels, cfg.places_per_batch, cfg.images_per_place,
                                     num_batches=cfg.batches_per_epoch, seed=rng)
 
-    source = PlaceBatchSource(images, batches)
+    source = PlaceBatchSource(images, batches, loss=MultiSimilarityLoss())   # alpha 1, beta 50, base 0, miner 0.1
     tcfg = TrainConfig(epochs=cfg.epochs, optimizer="adam", lr=cfg.lr, weight_decay=0.0,
                        step_size=cfg.step_size, gamma=0.5, seed=cfg.seed, ns=(1, 5), device="cpu")
     sel = _split(*SELECTION_WORLD)

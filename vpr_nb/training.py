@@ -6,10 +6,16 @@
   Sec. 4): at the start of every epoch (and every ``cache_refresh`` queries) the descriptors of the
   training images are recomputed; each query gets its best potential positive (within the training
   radius) and its M hardest negatives (beyond the evaluation radius) from
-  :func:`vpr_nb.mining.mine_triplets`; the loss is one of DW-T-Loss's Eqs. (3), (4)x(3), (5)-(8), (9).
+  :func:`vpr_nb.mining.mine_triplets`; the loss is a :class:`vpr_nb.losses.TripletFamilyLoss` object,
+  one of DW-T-Loss's Eqs. (3), (4)x(3), (5)-(8), (9).
 - :class:`PlaceBatchSource` — GSV-Cities / CliqueMining-style batches of P places x K images
-  (from :func:`vpr_nb.mining.random_place_batches` or :func:`vpr_nb.mining.clique_batches`) with the
-  Multi-Similarity loss and miner.
+  (from :func:`vpr_nb.mining.random_place_batches` or :func:`vpr_nb.mining.clique_batches`) with a
+  :class:`vpr_nb.losses.MultiSimilarityLoss` object (loss and miner).
+
+A source builds batches; the loss object it is given holds the loss's parameters (margin, sigma, eps, ...).
+:func:`train` is the loop; its parts are named helpers: :func:`setup_device` (device and AMP),
+:func:`wrap_ddp` / :func:`unwrap_ddp`, :func:`resume_state`, :func:`make_scheduler` /
+:func:`scheduler_step`, :func:`evaluate_epoch` and :func:`save_training_state` / :func:`save_checkpoint`.
 
 Defaults follow DW-T-Loss / NetVLAD: SGD (momentum 0.9, weight decay 1e-3) and StepLR(5, 0.5).
 Every epoch is seeded from ``(seed, epoch)``, so a run interrupted after epoch e and resumed from its
@@ -36,7 +42,6 @@ from .evaluation import (as_image_array, compute_descriptors, evaluate_descripto
                          mean_pairwise_cosine)
 from .mining import mine_triplets
 
-TRIPLET_LOSSES = ("triplet", "weighted", "ce", "dw")
 OPTIMIZERS = ("sgd", "adam", "adamw")
 SCHEDULERS = ("step", "linear")
 
@@ -147,13 +152,16 @@ class TripletSource:
     Args:
         split: a dataset split with ``q_images/q_utm/db_images/db_utm`` (and headings if
             ``max_heading_diff`` is set), ``train_pos_radius`` and ``pos_radius``.
-        loss: ``"triplet"`` (Eq. 3), ``"weighted"`` (Eq. 4 x Eq. 3), ``"ce"`` (Eqs. 5-8), ``"dw"`` (Eq. 9).
+        loss: a :class:`vpr_nb.losses.TripletFamilyLoss` object holding its parameters:
+            ``TripletLoss(margin)`` (Eq. 3), ``WeightedTripletLoss(margin, sigma, eps)`` (Eq. 4 x Eq. 3),
+            ``CETripletLoss()`` (Eqs. 5-8), ``DWTripletLoss(sigma, eps)`` (Eq. 9). Default: Eq. (3) with
+            the paper's margin. (TEMPORARY: the names ``"triplet"``, ``"weighted"``, ``"ce"``, ``"dw"``
+            with ``margin``/``sigma``/``eps`` keywords still build the same object.)
         batch_size: queries per optimiser step; num_negatives: M; num_candidates: random negatives
             sampled per query; cache_refresh: recompute the descriptor cache every this many queries
             (None: once per epoch). pytorch-NetVlad uses M=10, 1000 candidates and a refresh every
             1000 of Pittsburgh30k's 7416 training queries; the defaults here (M=5, 300 candidates,
             once per epoch = every ~580 queries of the tiny city) scale that to the tiny world.
-        margin, sigma, eps: the loss parameters (margin for Eq. 3, sigma/eps for Eq. 4).
         max_heading_diff: keep only positives facing the query's way (see ``mine_triplets``).
         neg_radius: negatives lie beyond this many metres (default: the split's evaluation radius,
             NetVLAD's 25 m). On a densely sampled route (positives = +-1 frame) a larger radius keeps
@@ -161,12 +169,15 @@ class TripletSource:
     The per-step loss is the loss summed over the step's triplets divided by the number of queries.
     """
 
-    def __init__(self, split, loss: str = "triplet", *, batch_size: int = 16, num_negatives: int = 5,
-                 num_candidates: int = 300, cache_refresh: int | None = None, margin: float = 0.1,
-                 sigma: float = 800.0, eps: float = 0.1, max_heading_diff: float | None = None,
-                 neg_radius: float | None = None):
-        if loss not in TRIPLET_LOSSES:
-            raise ValueError(f"loss must be one of {TRIPLET_LOSSES}, got {loss!r}")
+    def __init__(self, split, loss: L.TripletFamilyLoss = L.TripletLoss(), *, batch_size: int = 16,
+                 num_negatives: int = 5, num_candidates: int = 300, cache_refresh: int | None = None,
+                 max_heading_diff: float | None = None, neg_radius: float | None = None, **string_loss_params):
+        # TEMPORARY: string losses until the notebooks pass loss objects
+        loss = _loss_from_string(loss, string_loss_params, ("margin", "sigma", "eps"), "triplet")
+        if not isinstance(loss, L.TripletFamilyLoss):
+            raise ValueError(f"loss must be a triplet-family loss object (vpr_nb.losses.TripletLoss(margin), "
+                             f"WeightedTripletLoss(margin, sigma, eps), CETripletLoss(), DWTripletLoss(sigma, eps)), "
+                             f"got {loss!r}")
         for name in ("q_images", "q_utm", "db_images", "db_utm"):
             if not hasattr(split, name):
                 raise ValueError(f"split must provide {name} (a VPRDataset split or the like)")
@@ -177,8 +188,6 @@ class TripletSource:
         self.num_negatives = check_int(num_negatives, "num_negatives")
         self.num_candidates = check_int(num_candidates, "num_candidates")
         self.cache_refresh = None if cache_refresh is None else check_int(cache_refresh, "cache_refresh")
-        self.margin = check_positive(margin, "margin", allow_zero=True)
-        self.sigma, self.eps = check_positive(sigma, "sigma"), check_positive(eps, "eps")
         self.max_heading_diff = max_heading_diff
         self.neg_radius = split.pos_radius if neg_radius is None else check_positive(neg_radius, "neg_radius")
         self.q, self.db = split.q_images, split.db_images
@@ -200,16 +209,7 @@ class TripletSource:
         """The loss of this step's triplets if every descriptor were the same unit vector."""
         e = torch.zeros(b, dim, dtype=geo.dtype)
         e[:, 0] = 1.0
-        return float(self._loss(e, e, e.unsqueeze(1).expand(b, m, dim), geo.cpu()))
-
-    def _loss(self, q, p, n, geo):
-        if self.loss == "triplet":
-            return L.triplet_loss(q, p, n, self.margin)
-        if self.loss == "weighted":
-            return L.weighted_triplet_loss(q, p, n, geo, self.margin, self.sigma, self.eps)
-        if self.loss == "ce":
-            return L.ce_triplet_loss(q, p, n)
-        return L.dw_triplet_loss(q, p, n, geo, self.sigma, self.eps)
+        return float(self.loss(e, e, e.unsqueeze(1).expand(b, m, dim), geo.cpu()))
 
     def steps(self, model, rng: np.random.Generator, shard: tuple[int, int] = (0, 1), device=None):
         """Yield one loss tensor per optimiser step of an epoch.
@@ -245,7 +245,7 @@ class TripletSource:
             q, p, n = out[:b], out[b:2 * b], out[2 * b:].view(b, m, -1)
             geo = torch.as_tensor(tb.geo_qp[v], dtype=out.dtype, device=out.device)
             self.last_collapsed_loss = self._collapsed_loss(b, m, out.shape[1], geo) * (world / total)
-            yield self._loss(q, p, n, geo) * (world / total)
+            yield self.loss(q, p, n, geo) * (world / total)
 
 
 class PlaceBatchSource:
@@ -254,17 +254,27 @@ class PlaceBatchSource:
     ``make_batches(model, epoch, rng)`` returns an int array ``(num_batches, P, K)`` of indices into
     ``images`` (for example :func:`vpr_nb.mining.random_place_batches` or
     :func:`vpr_nb.mining.clique_batches` on descriptors from ``model``); images in the same place slot
-    share a label.
+    share a label. ``loss`` is a :class:`vpr_nb.losses.MultiSimilarityLoss` object (its ``alpha``, ``beta``,
+    ``base`` and ``miner_epsilon``; default: the SALAD / GSV-Cities recipe), called as
+    ``loss(embeddings, labels)``. (TEMPORARY: ``alpha``/``beta``/``base``/``miner_epsilon`` keywords still
+    build the same object.)
     """
 
-    def __init__(self, images, make_batches: Callable, *, alpha: float = 1.0, beta: float = 50.0,
-                 base: float = 0.0, miner_epsilon: float | None = 0.1):
+    def __init__(self, images, make_batches: Callable, *, loss: L.MultiSimilarityLoss = L.MultiSimilarityLoss(),
+                 **string_loss_params):
+        # TEMPORARY: string losses until the notebooks pass loss objects
+        if string_loss_params:
+            loss = _loss_from_string("multi-similarity", string_loss_params,
+                                     ("alpha", "beta", "base", "miner_epsilon"), "places")
         self.x = as_image_array(images)
         images_to_tensor(self.x[:1])           # validates shape and dtype
         if not callable(make_batches):
             raise ValueError("make_batches must be a callable (model, epoch, rng) -> (num_batches, P, K) indices")
-        self.make_batches = make_batches
-        self.alpha, self.beta, self.base, self.miner_epsilon = alpha, beta, base, miner_epsilon
+        if isinstance(loss, L.TripletFamilyLoss) or not callable(loss):
+            raise ValueError(f"loss must be a place-batch loss called as loss(embeddings, labels), e.g. "
+                             f"vpr_nb.losses.MultiSimilarityLoss(alpha, beta, base, miner_epsilon), got {loss!r}; "
+                             f"triplet-family losses go with TripletSource")
+        self.make_batches, self.loss = make_batches, loss
         self.epoch = 0
 
     def state_dict(self) -> dict:
@@ -295,12 +305,33 @@ class PlaceBatchSource:
         for batch in batches:
             emb = model(images_to_tensor(self.x[batch.reshape(-1)]).to(device)).float()
             same = torch.nn.functional.normalize(torch.ones_like(emb.detach()), dim=1)   # every descriptor equal
-            self.last_collapsed_loss = float(self._ms_loss(same, labels))
-            yield self._ms_loss(emb, labels)
+            self.last_collapsed_loss = float(self.loss(same, labels))
+            yield self.loss(emb, labels)
 
     def _ms_loss(self, emb, labels):
-        pairs = None if self.miner_epsilon is None else L.multi_similarity_miner(emb, labels, self.miner_epsilon)
-        return L.multi_similarity_loss(emb, labels, self.alpha, self.beta, self.base, miner_pairs=pairs)
+        """TEMPORARY: string losses until the notebooks pass loss objects (notebook 07 calls it; use ``self.loss``)."""
+        return self.loss(emb, labels)
+
+
+def _loss_from_string(loss, params: dict, names: tuple[str, ...], kind: str):
+    """TEMPORARY: string losses until the notebooks pass loss objects.
+
+    ``TripletSource(split, "dw", sigma=..., eps=...)`` and ``PlaceBatchSource(..., alpha=...)`` build the
+    same object as the typed config's loss registry (:func:`vpr_nb.config.build_loss`). A loss object is
+    returned unchanged (it must come without loose parameters).
+    """
+    unknown = sorted(set(params) - set(names))
+    if unknown:
+        raise ValueError(f"unexpected keyword argument(s) {unknown}; the loss parameters {names} belong to the "
+                         f"loss object, e.g. loss=vpr_nb.losses.WeightedTripletLoss(margin=0.1, sigma=800.0)")
+    if not isinstance(loss, str):
+        if params:
+            raise ValueError(f"{sorted(params)} given beside a loss object {loss!r}: set them on the loss object")
+        return loss
+    from .config import TRIPLET_LOSSES, SourceConfig, build_loss
+    if kind == "triplet" and loss not in TRIPLET_LOSSES:
+        raise ValueError(f"loss must be a loss object, or (temporarily) one of {TRIPLET_LOSSES}, got {loss!r}")
+    return build_loss(SourceConfig(kind=kind, loss=loss, **params))
 
 
 # ------------------------------------------------------------------------------ checkpoints
