@@ -1,25 +1,28 @@
-"""Benchmark: CliqueMining batches (vpr_nb.mining) -- speed-up, cost per batch against N, memory.
+"""Benchmark: CliqueMining batches (vpr_nb.samplers) -- speed-up, cost per batch against N, memory.
 
 1. Speed-up over the straightforward formulation of bench/reference_clique.py (a dense adjacency
    and a new networkx graph per place) on the same inputs: target >= 10x. Both outputs are checked
    against the invariants (every place pairwise < threshold, places >= threshold apart, no image
    twice in a batch).
-2. Cost of one 30 x 4 batch against the number of geotags N (10k -> 1M): the per-region index is
-   built once (as CliqueBatchMaker does), then batches are mined; target <= 5 ms per batch at 1M and
-   flat in N (the fitted exponent of ms-per-batch ~ N^e should be ~0). Index build time is printed apart.
+2. Cost of one 30 x 4 batch against the number of geotags N (10k, 100k, 1M): the per-region index is
+   built once (as CliqueBatchMaker does), then batches are mined with the bit-set clique search
+   (pools up to ``dense_max`` images) and, alternating in the same run, with the previous k-d tree +
+   Python-set search (``dense_max = 0``); both must give identical batches. Target <= 5 ms per batch at
+   1M and flat in N: the fitted exponent of ms-per-batch ~ N^e from 10k to 1M is printed (~0 is flat).
+   Wall and CPU (process) time are both printed: on a loaded machine the wall time is inflated.
 3. Memory (tracemalloc peaks): the index (once) and one batch at 1M geotags, against one call of the
    published-style reference on one 10k-image city (the published code works city by city).
 
-Only ratios measured in this one run are printed; nothing fails on absolute time (the machine may be
-loaded), only on broken invariants.
+Only ratios and times measured in this one run are printed; nothing fails on absolute time (the
+machine may be loaded), only on broken invariants or different batches.
 
 The geotags are MSLS-like: cities of 10k images, each several drives (random walks on a street grid,
 one image every ~3 m, GPS noise) over the same streets, grouped into 25 m cells (the
 ``unique_cluster`` analogue); each group descriptor is a 64-D random Fourier feature of the cell
 centre plus noise, L2-normalised. Cities are 100 km apart and labelled as regions.
 
-    python bench/bench_mining.py            # 20k geotags for the speed-up, N up to 1M
-    python bench/bench_mining.py --quick    # 5k geotags for the speed-up, N up to 100k
+    python bench/bench_mining.py            # 20k geotags for the speed-up, 200 batches per N
+    python bench/bench_mining.py --quick    # 5k geotags for the speed-up, 40 batches per N
 """
 from __future__ import annotations
 
@@ -34,7 +37,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from reference_clique import reference_clique_batches  # noqa: E402
 
-from vpr_nb.mining import _checked_miner, clique_batches  # noqa: E402
+from vpr_nb.samplers import _DENSE_MAX, _checked_miner, clique_batches  # noqa: E402
 
 TARGET_MS = 5.0
 CITY = 10_000
@@ -126,22 +129,39 @@ def main() -> None:
           f"speed-up: {t_ref / t_ours:.1f}x (target >= {TARGET_SPEEDUP:.0f}x, ratio to target "
           f"{t_ref / t_ours / TARGET_SPEEDUP:.2f})")
 
-    # 2. cost per batch against N, index built once
-    sizes = (10_000, 30_000, 100_000) if args.quick else (10_000, 100_000, 1_000_000)
-    n_batches = 50 if args.quick else 200
-    per_batch = []
+    # 2. cost per batch against N, index built once; bit-set search vs the previous set search, alternating
+    sizes = (10_000, 100_000, 1_000_000)
+    n_batches, rounds = (40, 3) if args.quick else (200, 3)
+    wall, cpu = [], []
     for n in sizes:
         (utm, groups, desc, regions), t_gen = timed(cities, n, 1)
         miner, t_index = timed(_checked_miner, utm, groups, desc, 30, 4, 25.0, 15, regions, None, None)
         miner.mine(5, 99)                                  # warm-up
-        out, secs = timed(miner.mine, n_batches, 0)
-        check_invariants(out[:20], utm, 25.0)
-        per_batch.append(1e3 * secs / n_batches)
+        times = {"bit sets": ([], []), "previous": ([], [])}
+        for r in range(rounds):
+            outs = {}
+            for name, dense_max in (("bit sets", _DENSE_MAX), ("previous", 0)):
+                miner.dense_max = dense_max
+                w0, c0 = time.perf_counter(), time.process_time()
+                outs[name] = miner.mine(n_batches, r)
+                times[name][0].append(1e3 * (time.perf_counter() - w0) / n_batches)
+                times[name][1].append(1e3 * (time.process_time() - c0) / n_batches)
+            assert np.array_equal(outs["bit sets"], outs["previous"]), "the bit-set search changed the batches"
+        del miner.dense_max                                # back to the class default
+        check_invariants(outs["bit sets"][:20], utm, 25.0)
+        (w_new, c_new), (w_old, c_old) = [[float(np.median(t)) for t in times[k]] for k in ("bit sets", "previous")]
+        ratio = float(np.median(np.array(times["previous"][1]) / np.array(times["bit sets"][1])))
+        wall.append(w_new)
+        cpu.append(c_new)
         print(f"[per batch] N={n:>9,}: {groups.max() + 1:,} groups in {regions.max() + 1} cities "
-              f"(generated in {t_gen:.1f} s), index {t_index:.2f} s once, {per_batch[-1]:.2f} ms per 30x4 batch "
-              f"(ratio to the {TARGET_MS:.0f} ms target {per_batch[-1] / TARGET_MS:.2f})")
-    e = np.polyfit(np.log(sizes), np.log(per_batch), 1)[0]
-    print(f"  fitted exponent of ms per batch ~ N^e from {sizes[0]:,} to {sizes[-1]:,}: e = {e:.3f} (flat: ~0)")
+              f"(generated in {t_gen:.1f} s), index {t_index:.2f} s once; identical batches")
+        print(f"    {w_new:.2f} ms wall / {c_new:.2f} ms CPU per 30x4 batch (ratio to the {TARGET_MS:.0f} ms target: "
+              f"{w_new / TARGET_MS:.2f} wall, {c_new / TARGET_MS:.2f} CPU); previous set search {w_old:.2f} ms wall / "
+              f"{c_old:.2f} ms CPU; speed-up {ratio:.2f}x (CPU, median of {rounds} alternating rounds)")
+    e_wall = np.polyfit(np.log(sizes), np.log(wall), 1)[0]
+    e_cpu = np.polyfit(np.log(sizes), np.log(cpu), 1)[0]
+    print(f"  fitted exponent of ms per batch ~ N^e from {sizes[0]:,} to {sizes[-1]:,}: e = {e_cpu:.3f} (CPU), "
+          f"{e_wall:.3f} (wall) (flat: ~0)")
 
     # 3. memory: the index once and one batch at the largest N, the reference on one city
     tracemalloc.start()
@@ -149,19 +169,23 @@ def main() -> None:
     base = tracemalloc.get_traced_memory()[0]
     miner = _checked_miner(utm, groups, desc, 30, 4, 25.0, 15, regions, None, None)
     index_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
-    tracemalloc.reset_peak()
-    base = tracemalloc.get_traced_memory()[0]
-    miner.mine(1, 7)
-    batch_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
+    batch_mb = {}
+    for name, dense_max in (("bit sets", _DENSE_MAX), ("previous", 0)):
+        miner.dense_max = dense_max
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        miner.mine(3, 7)
+        batch_mb[name] = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
     cu, cg, cd, _ = cities(CITY, 2)
     tracemalloc.reset_peak()
     base = tracemalloc.get_traced_memory()[0]
     reference_clique_batches(cu, cg, cd, 30, num_batches=1, seed=0)
     ref_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
     tracemalloc.stop()
-    print(f"[memory] N={sizes[-1]:,}: index {index_mb:.1f} MiB (once per run), one batch {batch_mb:.2f} MiB; "
-          f"reference, one call on a {CITY:,}-image city: {ref_mb:.2f} MiB; batch / reference = {batch_mb / ref_mb:.2f}")
-
+    print(f"[memory] N={sizes[-1]:,}: index {index_mb:.1f} MiB (once per run); mining 3 batches: bit sets "
+          f"{batch_mb['bit sets']:.2f} MiB, previous {batch_mb['previous']:.2f} MiB; reference, one call on a "
+          f"{CITY:,}-image city: {ref_mb:.2f} MiB; batch / reference = {batch_mb['bit sets'] / ref_mb:.2f} "
+          f"(target <= 1), index / reference = {index_mb / ref_mb:.2f}")
 
 if __name__ == "__main__":
     main()

@@ -13,7 +13,7 @@ It follows the published algorithm step by step (Izquierdo & Civera, ECCV 2024; 
    their neighbours are cut out of the adjacency;
 5. a new anchor when no clique is left, until the batch is full.
 
-Same inputs and output shape as :func:`vpr_nb.mining.clique_batches`; the batches differ (another
+Same inputs and output shape as :func:`vpr_nb.samplers.clique_batches`; the batches differ (another
 clique order and random stream) but satisfy the same invariants.
 """
 from __future__ import annotations

@@ -809,13 +809,13 @@ class EpochPlaceBatches:
 
 
 class CliqueSampler:
-    """CliqueMining batches (:class:`vpr_nb.mining.CliqueBatchMaker`) over the images with a place id.
+    """CliqueMining batches (:class:`vpr_nb.samplers.CliqueBatchMaker`) over the images with a place id.
     Cities are kept apart (their UTM is offset by 10 000 km per city), so a clique never spans two cities,
     and the similar groups of a batch are drawn within the anchor's city (``regions``), as published.
     ``state_dict`` holds the group descriptors, so a resumed run mines the same batches."""
 
     def __init__(self, images, groups, utm, regions, s: SourceConfig, num_batches: int, places: int):
-        from .mining import CliqueBatchMaker
+        from .samplers import CliqueBatchMaker
         sub = np.flatnonzero(groups >= 0)
         _, gid = np.unique(groups[sub], return_inverse=True)
         _, rid = np.unique(regions[sub].astype(str), return_inverse=True)

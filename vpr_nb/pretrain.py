@@ -139,7 +139,7 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> tuple[SmallCNN, dict
     """Train the course backbone on the corpus; returns (backbone, info) deterministically."""
     import vpr_nb
     from .aggregation import GeM
-    from .mining import random_place_batches
+    from .samplers import random_place_batches
     from .models import VPRModel
     from .losses import MultiSimilarityLoss
     from .training import PlaceBatchSource, TrainConfig, train
