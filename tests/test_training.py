@@ -5,7 +5,7 @@ import torch
 
 from vpr_nb import losses as L
 from vpr_nb import seed_everything
-from vpr_nb.mining import random_place_batches
+from vpr_nb.samplers import random_place_batches
 from vpr_nb.models import build_model
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import (History, PlaceBatchSource, TrainConfig, TripletSource, load_checkpoint,
@@ -402,3 +402,64 @@ def test_string_losses_build_the_same_objects(world):
     emb = torch.nn.functional.normalize(torch.randn(8, 4, generator=torch.Generator().manual_seed(0)), dim=1)
     labels = torch.arange(4).repeat_interleave(2)
     assert torch.equal(src._ms_loss(emb, labels), src.loss(emb, labels))
+
+
+# ------------------------------------------------------------------------------ the parts of train()
+@pytest.mark.filterwarnings("ignore:Detected call of `lr_scheduler.step\\(\\)` before")
+def test_scheduler_steps_per_epoch_or_per_batch():
+    from vpr_nb.training import make_optimizer, make_scheduler, scheduler_step
+    for kind, steps_on in (("step", "epoch"), ("linear", "batch")):
+        cfg = TrainConfig(scheduler=kind, step_size=1, gamma=0.5, linear_steps=4)
+        opt = make_optimizer(torch.nn.Linear(2, 2), cfg)
+        sched = make_scheduler(opt, cfg)
+        other = "batch" if steps_on == "epoch" else "epoch"
+        scheduler_step(sched, cfg, other)
+        assert opt.param_groups[0]["lr"] == pytest.approx(cfg.lr), kind
+        scheduler_step(sched, cfg, steps_on)
+        assert opt.param_groups[0]["lr"] < cfg.lr, kind
+    with pytest.raises(ValueError, match="'batch' or 'epoch'"):
+        scheduler_step(sched, cfg, "step")
+    with pytest.raises(ValueError, match="no trainable parameters"):
+        make_optimizer(torch.nn.Linear(2, 2).requires_grad_(False), cfg)
+
+
+def test_device_setup_and_ddp_unwrap():
+    from vpr_nb.training import setup_device, unwrap_ddp, wrap_ddp
+    plain = setup_device(TrainConfig(device="cpu"))
+    assert plain.device == torch.device("cpu") and plain.amp_dtype is None and plain.scaler is None
+    amp = setup_device(TrainConfig(device="cpu", amp=True))
+    assert amp.amp_dtype == torch.bfloat16 and amp.scaler is None           # bfloat16 needs no loss scaling
+    with amp.autocast():
+        assert torch.get_autocast_dtype("cpu") == torch.bfloat16 and torch.is_autocast_enabled("cpu")
+    with pytest.raises(ValueError, match="TrainConfig"):
+        setup_device({"device": "cpu"})
+    net = torch.nn.Linear(2, 2)
+    assert wrap_ddp(net, plain.device, world=1) is net and unwrap_ddp(net) is net
+
+
+def test_history_add_epoch_tracks_the_best():
+    h = History()
+    assert h.add_epoch(0, 1.0, 1.2, 0.9, 0.05, 1.0, {1: 0.4, 5: 0.6}, select_n=1)
+    assert not h.add_epoch(1, 0.9, 1.2, 0.9, 0.05, 1.0, {1: 0.4, 5: 0.7}, select_n=1)     # ties do not move it
+    assert h.add_epoch(2, 0.8, 1.2, 0.9, 0.05, 1.0, {1: 0.5, 5: 0.7}, select_n=1)
+    assert (h.best_epoch, h.best_recall, h.losses) == (2, 0.5, [1.0, 0.9, 0.8])
+    with pytest.raises(ValueError, match="selection N=10"):
+        h.add_epoch(3, 0.8, 1.2, 0.9, 0.05, 1.0, {1: 0.5, 5: 0.7}, select_n=10)
+
+
+@pytest.mark.filterwarnings("ignore:Detected call of `lr_scheduler.step\\(\\)` before")
+def test_float16_scaler_state_is_checkpointed_and_resumed(world, tmp_path, monkeypatch):
+    """GPUs without bfloat16 train in float16 with a GradScaler: its state goes into last.pt and comes back."""
+    import vpr_nb.training as T
+    monkeypatch.setattr(T, "amp_dtype", lambda device: torch.float16)
+    cfg = TrainConfig(epochs=2, lr=0.05, amp=True, device="cpu")
+    src = TripletSource(world.train, L.TripletLoss(), batch_size=8, num_negatives=3, num_candidates=50)
+    train(_model(), src, world.val, cfg, checkpoint_dir=tmp_path, progress=False, stop_after=1)
+    ck = load_checkpoint(tmp_path / "last.pt")
+    assert "scaler" in ck and ck["epoch"] == 0
+    setup = T.setup_device(cfg)
+    model = _model()
+    opt = T.make_optimizer(model, cfg)
+    history, start, _ = T.resume_state(tmp_path, cfg, model, opt, T.make_scheduler(opt, cfg), src, setup.scaler)
+    assert start == 1 and len(history.epochs) == 1 and setup.scaler.state_dict() == ck["scaler"]
+    assert T.resume_state(tmp_path / "empty", cfg, model, opt, T.make_scheduler(opt, cfg), src) is None

@@ -355,7 +355,8 @@ def multi_similarity_loss(embeddings: torch.Tensor, labels, alpha: float = DEFAU
     return (pos_term + neg_term).mean()
 
 
-def multi_similarity_miner(embeddings: torch.Tensor, labels, epsilon: float = DEFAULT_MS_MINER_EPSILON) -> MinerPairs:
+def multi_similarity_miner(embeddings: torch.Tensor, labels,
+                           epsilon: float = DEFAULT_MS_MINER_EPSILON) -> MinerPairs:
     """Multi-Similarity pair mining (Sec. 3.3 of Wang et al.) on cosine similarities.
 
     Keeps the negative (i, n) if ``S_in + epsilon > min_p S_ip`` and the positive (i, p) if

@@ -9,7 +9,7 @@
   :func:`vpr_nb.mining.mine_triplets`; the loss is a :class:`vpr_nb.losses.TripletFamilyLoss` object,
   one of DW-T-Loss's Eqs. (3), (4)x(3), (5)-(8), (9).
 - :class:`PlaceBatchSource` — GSV-Cities / CliqueMining-style batches of P places x K images
-  (from :func:`vpr_nb.mining.random_place_batches` or :func:`vpr_nb.mining.clique_batches`) with a
+  (from :func:`vpr_nb.samplers.random_place_batches` or :func:`vpr_nb.samplers.clique_batches`) with a
   :class:`vpr_nb.losses.MultiSimilarityLoss` object (loss and miner).
 
 A source builds batches; the loss object it is given holds the loss's parameters (margin, sigma, eps, ...).
@@ -105,6 +105,20 @@ class History:
     epochs: list[dict] = field(default_factory=list)
     best_epoch: int = -1
     best_recall: float = -1.0
+
+    def add_epoch(self, epoch: int, loss: float, collapsed_loss: float, mean_cosine: float, lr: float,
+                  seconds: float, val: dict, select_n: int) -> bool:
+        """Append one epoch's record; returns whether its validation Recall@``select_n`` (``TrainConfig.ns[0]``)
+        beats the best so far (then ``best_epoch`` / ``best_recall`` move to this epoch)."""
+        if select_n not in val:
+            raise ValueError(f"val holds Recall@N for N in {sorted(val)}, not the selection N={select_n}; "
+                             f"evaluate with ns that include it")
+        self.epochs.append({"epoch": epoch, "loss": loss, "collapsed_loss": collapsed_loss,
+                            "mean_cosine": mean_cosine, "lr": lr, "seconds": seconds, "val": val})
+        if val[select_n] > self.best_recall:
+            self.best_epoch, self.best_recall = epoch, float(val[select_n])
+            return True
+        return False
 
     @property
     def losses(self) -> list[float]:
@@ -202,7 +216,7 @@ class TripletSource:
         self.neg_cache = {int(k): v.numpy() for k, v in zip(state["keys"], state["values"])}
 
     def _descriptors(self, model):
-        model = getattr(model, "module", model)        # unwrap DistributedDataParallel
+        model = unwrap_ddp(model)
         return compute_descriptors(model, self.split.q_images), compute_descriptors(model, self.split.db_images)
 
     def _collapsed_loss(self, b: int, m: int, dim: int, geo) -> float:
@@ -252,8 +266,8 @@ class PlaceBatchSource:
     """Batches of P places x K images with the Multi-Similarity loss (Wang et al., CVPR 2019, Eq. 6).
 
     ``make_batches(model, epoch, rng)`` returns an int array ``(num_batches, P, K)`` of indices into
-    ``images`` (for example :func:`vpr_nb.mining.random_place_batches` or
-    :func:`vpr_nb.mining.clique_batches` on descriptors from ``model``); images in the same place slot
+    ``images`` (for example :func:`vpr_nb.samplers.random_place_batches` or
+    :func:`vpr_nb.samplers.clique_batches` on descriptors from ``model``); images in the same place slot
     share a label. ``loss`` is a :class:`vpr_nb.losses.MultiSimilarityLoss` object (its ``alpha``, ``beta``,
     ``base`` and ``miner_epsilon``; default: the SALAD / GSV-Cities recipe), called as
     ``loss(embeddings, labels)``. (TEMPORARY: ``alpha``/``beta``/``base``/``miner_epsilon`` keywords still
@@ -380,7 +394,65 @@ def amp_dtype(device: torch.device) -> torch.dtype:
     return torch.bfloat16
 
 
-def _optimizer(model, cfg: TrainConfig):
+def resolve_device(name: str = "auto") -> torch.device:
+    """``"auto"`` → CUDA when available, else CPU; a CUDA name without CUDA is a clear error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} requested but CUDA is not available; use device='cpu' or 'auto'")
+    return torch.device(name)
+
+
+# ------------------------------------------------------------------------------ the parts of train()
+@dataclass(frozen=True)
+class DeviceSetup:
+    """Where and in which precision :func:`train` runs: ``amp_dtype`` is ``None`` without AMP; ``scaler``
+    is a ``GradScaler`` only for float16 autocast (bfloat16 needs none)."""
+
+    device: torch.device
+    amp_dtype: torch.dtype | None
+    scaler: torch.amp.GradScaler | None
+
+    def autocast(self):
+        """The autocast context of the training steps (disabled without AMP)."""
+        return torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None)
+
+
+def setup_device(cfg: TrainConfig) -> DeviceSetup:
+    """The device of ``cfg.device`` (:func:`resolve_device`) and, with ``cfg.amp``, the autocast dtype
+    (:func:`amp_dtype`) and, for float16, a ``GradScaler``."""
+    if not isinstance(cfg, TrainConfig):
+        raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
+    device = resolve_device(cfg.device)
+    dtype = amp_dtype(device) if cfg.amp else None
+    scaler = torch.amp.GradScaler(device.type) if dtype == torch.float16 else None
+    return DeviceSetup(device, dtype, scaler)
+
+
+def distributed_rank() -> tuple[int, int]:
+    """(rank, world size) of an initialised ``torch.distributed`` process group, else (0, 1)."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+def wrap_ddp(model: torch.nn.Module, device: torch.device, world: int) -> torch.nn.Module:
+    """``model`` in ``DistributedDataParallel`` when ``world`` > 1 (gradients averaged over processes), else
+    ``model`` itself. ``find_unused_parameters``: e.g. SmallCNN's global-token layer is unused by pooling
+    aggregators."""
+    if world <= 1:
+        return model
+    ids = [device.index] if device.type == "cuda" else None
+    return torch.nn.parallel.DistributedDataParallel(model, device_ids=ids, find_unused_parameters=True)
+
+
+def unwrap_ddp(net: torch.nn.Module) -> torch.nn.Module:
+    """The model inside a ``DistributedDataParallel`` wrapper (:func:`wrap_ddp`), or ``net`` itself."""
+    return net.module if isinstance(net, torch.nn.parallel.DistributedDataParallel) else net
+
+
+def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
+    """SGD (momentum, weight decay), Adam or AdamW over the model's trainable parameters (``cfg.optimizer``)."""
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
         raise ValueError("the model has no trainable parameters")
@@ -391,27 +463,118 @@ def _optimizer(model, cfg: TrainConfig):
     return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
 
 
-def _scheduler(opt, cfg: TrainConfig):
+def make_scheduler(opt: torch.optim.Optimizer, cfg: TrainConfig):
+    """``cfg.scheduler="step"``: StepLR(step_size, gamma), stepped once per epoch (NetVLAD / DW-T-Loss);
+    ``"linear"``: LinearLR(1 -> linear_end_factor over linear_steps), stepped per optimiser step (SALAD).
+    :func:`scheduler_step` does the stepping."""
     if cfg.scheduler == "step":
         return torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.step_size, gamma=cfg.gamma)
     return torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0, end_factor=cfg.linear_end_factor,
                                              total_iters=cfg.linear_steps)
 
 
-def resolve_device(name: str = "auto") -> torch.device:
-    """``"auto"`` → CUDA when available, else CPU; a CUDA name without CUDA is a clear error."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device {name!r} requested but CUDA is not available; use device='cpu' or 'auto'")
-    return torch.device(name)
+SCHEDULER_STEPS = {"step": "epoch", "linear": "batch"}    # when each scheduler of SCHEDULERS advances
 
 
-def _distributed() -> tuple[int, int]:
-    """(rank, world size) of an initialised ``torch.distributed`` process group, else (0, 1)."""
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
-        return torch.distributed.get_rank(), torch.distributed.get_world_size()
-    return 0, 1
+def scheduler_step(sched, cfg: TrainConfig, after: str) -> None:
+    """Advance ``sched`` if ``cfg.scheduler`` steps ``after`` this point: ``"batch"`` (an optimiser step) or
+    ``"epoch"`` (see :data:`SCHEDULER_STEPS`)."""
+    if after not in ("batch", "epoch"):
+        raise ValueError(f"after must be 'batch' or 'epoch', got {after!r}")
+    if SCHEDULER_STEPS[cfg.scheduler] == after:
+        sched.step()
+
+
+def optimizer_step(loss: torch.Tensor, opt: torch.optim.Optimizer, scaler=None) -> None:
+    """Back-propagate ``loss`` and take one optimiser step; with a float16 ``scaler`` the loss is scaled and
+    the gradients unscaled before the step."""
+    opt.zero_grad(set_to_none=True)
+    if scaler is not None:
+        scaler.scale(loss).backward()
+        scaler.step(opt)
+        scaler.update()
+    else:
+        loss.backward()
+        opt.step()
+
+
+def batch_loss(loss: torch.Tensor, world: int) -> float:
+    """The whole batch's loss for the log: this process's share averaged over the ``world`` processes."""
+    logged = loss.detach()
+    if world > 1:
+        logged = logged.clone()
+        torch.distributed.all_reduce(logged)
+        logged = logged / world
+    return logged.item()
+
+
+def train_epoch(net: torch.nn.Module, source, epoch: int, cfg: TrainConfig, opt, sched, setup: DeviceSetup,
+                shard: tuple[int, int] = (0, 1)) -> tuple[float, float]:
+    """One epoch of optimiser steps on the losses of ``source``, seeded from ``(cfg.seed, epoch)``.
+
+    Returns the epoch's mean loss and mean collapsed loss (the loss if every descriptor were equal, as
+    reported by the source after each step; NaN when it reports none).
+    """
+    rng = np.random.default_rng([cfg.seed, epoch])
+    torch.manual_seed(cfg.seed * 100_003 + epoch)
+    if hasattr(source, "epoch"):
+        source.epoch = epoch
+    unwrap_ddp(net).train()
+    total, collapsed, steps = 0.0, 0.0, 0
+    with setup.autocast():
+        for loss in source.steps(net, rng, shard=shard, device=setup.device):
+            if not torch.isfinite(loss):
+                raise ValueError(f"the loss became {loss.item()} at epoch {epoch}; lower the learning rate")
+            optimizer_step(loss, opt, setup.scaler)
+            scheduler_step(sched, cfg, "batch")
+            total, steps = total + batch_loss(loss, shard[1]), steps + 1
+            collapsed += float(getattr(source, "last_collapsed_loss", float("nan")))
+    return total / max(steps, 1), collapsed / max(steps, 1)
+
+
+def evaluate_epoch(model: torch.nn.Module, val_split, ns: tuple[int, ...]) -> tuple[dict, float]:
+    """Validation Recall@N of ``model`` on ``val_split`` and the mean pairwise cosine of its database
+    descriptors (:func:`mean_pairwise_cosine`; NaN for a one-image database)."""
+    val_db = compute_descriptors(model, val_split.db_images)
+    val = evaluate_descriptors(val_db, compute_descriptors(model, val_split.q_images), val_split.db_utm,
+                               val_split.q_utm, val_split.pos_radius, ns)
+    return val, mean_pairwise_cosine(val_db) if len(val_db) > 1 else float("nan")
+
+
+def training_state(model, opt, sched, source, history: History, epoch: int, best_state: dict, cfg: TrainConfig,
+                   scaler=None) -> dict:
+    """Everything :func:`resume_state` needs to continue after ``epoch`` (plain tensors and containers)."""
+    return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+            "source": source.state_dict(), "history": history.to_dict(), "epoch": epoch,
+            "best_model": best_state, "config": asdict(cfg),
+            **({"scaler": scaler.state_dict()} if scaler is not None else {})}
+
+
+def save_epoch_checkpoints(ckdir: Path, state: dict, improved: bool) -> None:
+    """``ckdir/last.pt`` = the full training state; ``ckdir/best.pt`` = the best weights when this epoch
+    ``improved`` on validation (both written atomically by :func:`save_checkpoint`)."""
+    if improved:
+        save_checkpoint(ckdir / "best.pt", {"model": state["best_model"], "epoch": state["epoch"]})
+    save_checkpoint(ckdir / "last.pt", state)
+
+
+def resume_state(ckdir: Path, cfg: TrainConfig, model, opt, sched, source, scaler=None):
+    """Load ``ckdir/last.pt`` (written by :func:`save_epoch_checkpoints`) into the model, optimiser, scheduler,
+    source and scaler; returns ``(history, first epoch to run, best weights)``, or ``None`` without a
+    ``last.pt``. A checkpoint of another TrainConfig is refused."""
+    path = Path(ckdir) / "last.pt"
+    if not path.is_file():
+        return None
+    ck = load_checkpoint(path)
+    if ck["config"] != asdict(cfg):
+        raise ValueError(f"{path} was written with a different TrainConfig; use another checkpoint_dir or resume=False")
+    model.load_state_dict(ck["model"])
+    opt.load_state_dict(ck["optimizer"])
+    sched.load_state_dict(ck["scheduler"])
+    source.load_state_dict(ck["source"])
+    if scaler is not None and "scaler" in ck:
+        scaler.load_state_dict(ck["scaler"])
+    return History.from_dict(ck["history"]), int(ck["epoch"]) + 1, ck["best_model"]
 
 
 def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None = None, *,
@@ -419,8 +582,8 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
           stop_after: int | None = None) -> History:
     """Train ``model`` with losses from ``source`` (:class:`TripletSource` or :class:`PlaceBatchSource`).
 
-    After every epoch: validation Recall@N on ``val_split`` (:func:`vpr_nb.evaluation.evaluate_model`),
-    the best-on-validation weights kept in memory (and in ``checkpoint_dir/best.pt``), and, with a
+    After every epoch: validation Recall@N on ``val_split`` (:func:`evaluate_epoch`), the
+    best-on-validation weights kept in memory (and in ``checkpoint_dir/best.pt``), and, with a
     ``checkpoint_dir``, the full state in ``last.pt``. With ``resume`` an existing ``last.pt`` is
     continued. ``stop_after`` ends the run after that many epochs of this call (to simulate an
     interruption). Returns the :class:`History`; with ``config.restore_best`` the model ends with
@@ -436,87 +599,30 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
         raise ValueError(f"config must be a TrainConfig, got {type(cfg).__name__}")
     if not hasattr(source, "steps"):
         raise ValueError("source must be a TripletSource or PlaceBatchSource (an object with steps(model, rng))")
-    rank, world = _distributed()
-    device = resolve_device(cfg.device)
-    model.to(device)
-    opt = _optimizer(model, cfg)
-    sched = _scheduler(opt, cfg)
-    history, start = History(), 0
-    best_state = copy.deepcopy(model.state_dict())
+    rank, world = distributed_rank()
+    setup = setup_device(cfg)
+    model.to(setup.device)
+    opt = make_optimizer(model, cfg)
+    sched = make_scheduler(opt, cfg)
     ckdir = None if checkpoint_dir is None else Path(checkpoint_dir)
-    if ckdir is not None and resume and (ckdir / "last.pt").is_file():
-        ck = load_checkpoint(ckdir / "last.pt")
-        if ck["config"] != asdict(cfg):
-            raise ValueError(f"{ckdir / 'last.pt'} was written with a different TrainConfig; "
-                             "use another checkpoint_dir or resume=False")
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        source.load_state_dict(ck["source"])
-        history, start, best_state = History.from_dict(ck["history"]), int(ck["epoch"]) + 1, ck["best_model"]
-    net = model
-    if world > 1:
-        # find_unused_parameters: e.g. SmallCNN's global-token layer is unused by pooling aggregators
-        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
-                                                        find_unused_parameters=True)
-    amp = bool(cfg.amp)
-    dtype = amp_dtype(device) if amp else None
-    scaler = torch.amp.GradScaler(device.type) if amp and dtype == torch.float16 else None
-    if scaler is not None and ckdir is not None and resume and start > 0 and "scaler" in ck:
-        scaler.load_state_dict(ck["scaler"])
+    resumed = None if ckdir is None or not resume else resume_state(ckdir, cfg, model, opt, sched, source, setup.scaler)
+    history, start, best_state = resumed or (History(), 0, copy.deepcopy(model.state_dict()))
+    net = wrap_ddp(model, setup.device, world)
     end = cfg.epochs if stop_after is None else min(cfg.epochs, start + check_int(stop_after, "stop_after"))
     bar = tqdm(range(start, end), desc="epochs", disable=not progress or rank != 0, leave=False)
     for epoch in bar:
         t0 = time.perf_counter()
-        rng = np.random.default_rng([cfg.seed, epoch])
-        torch.manual_seed(cfg.seed * 100_003 + epoch)
-        if hasattr(source, "epoch"):
-            source.epoch = epoch
-        model.train()
-        total, collapsed, steps = 0.0, 0.0, 0
         lr = opt.param_groups[0]["lr"]
-        with torch.autocast(device.type, dtype=dtype, enabled=amp):
-            for loss in source.steps(net, rng, shard=(rank, world), device=device):
-                if not torch.isfinite(loss):
-                    raise ValueError(f"the loss became {loss.item()} at epoch {epoch}; lower the learning rate")
-                opt.zero_grad(set_to_none=True)
-                if scaler is not None:          # float16: scale the loss, unscale before the step
-                    scaler.scale(loss).backward()
-                    scaler.step(opt)
-                    scaler.update()
-                else:
-                    loss.backward()
-                    opt.step()
-                if cfg.scheduler == "linear":
-                    sched.step()
-                logged = loss.detach()
-                if world > 1:                   # log the whole batch's loss, not this process's share
-                    logged = logged.clone()
-                    torch.distributed.all_reduce(logged)
-                    logged = logged / world
-                total, steps = total + logged.item(), steps + 1
-                collapsed += float(getattr(source, "last_collapsed_loss", float("nan")))
-        if cfg.scheduler == "step":
-            sched.step()
-        val_db = compute_descriptors(model, val_split.db_images)
-        val = evaluate_descriptors(val_db, compute_descriptors(model, val_split.q_images), val_split.db_utm,
-                                   val_split.q_utm, val_split.pos_radius, cfg.ns)
-        history.epochs.append({"epoch": epoch, "loss": total / max(steps, 1),
-                               "collapsed_loss": collapsed / max(steps, 1),
-                               "mean_cosine": mean_pairwise_cosine(val_db) if len(val_db) > 1 else float("nan"),
-                               "lr": lr, "seconds": time.perf_counter() - t0, "val": val})
-        if val[cfg.ns[0]] > history.best_recall:
-            history.best_epoch, history.best_recall = epoch, float(val[cfg.ns[0]])
+        loss, collapsed = train_epoch(net, source, epoch, cfg, opt, sched, setup, shard=(rank, world))
+        scheduler_step(sched, cfg, "epoch")
+        val, cosine = evaluate_epoch(model, val_split, cfg.ns)
+        improved = history.add_epoch(epoch, loss, collapsed, cosine, lr, time.perf_counter() - t0, val, cfg.ns[0])
+        if improved:
             best_state = copy.deepcopy(model.state_dict())
-            if ckdir is not None and rank == 0:
-                save_checkpoint(ckdir / "best.pt", {"model": best_state, "epoch": epoch})
         if ckdir is not None and rank == 0:
-            save_checkpoint(ckdir / "last.pt", {
-                "model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                "source": source.state_dict(), "history": history.to_dict(), "epoch": epoch,
-                "best_model": best_state, "config": asdict(cfg),
-                **({"scaler": scaler.state_dict()} if scaler is not None else {})})
-        bar.set_postfix(loss=f"{total / max(steps, 1):.3f}", R1=f"{val[cfg.ns[0]]:.3f}")
+            save_epoch_checkpoints(ckdir, training_state(model, opt, sched, source, history, epoch, best_state, cfg,
+                                                         setup.scaler), improved)
+        bar.set_postfix(loss=f"{loss:.3f}", R1=f"{val[cfg.ns[0]]:.3f}")
     if cfg.restore_best and history.best_epoch >= 0 and end == cfg.epochs:
         model.load_state_dict(best_state)
     return history
