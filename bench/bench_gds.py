@@ -1,14 +1,16 @@
-"""Benchmark: GDS profile of 100k images, all pairs within 25 m: time and memory, new vs previous.
+"""Benchmark: GDS profile, all pairs within 25 m: time and memory against two baselines, in one run.
 
 The images follow a random walk on a street grid (one image every ~1.5 m, with GPS noise);
 their 256-D descriptors are random Fourier features of the position plus noise, so that
 descriptor distance grows with geographic distance.
 
-In one run, alternating, it times ``gds_profile`` (quantiles only, and with ``keep_pairs=True``)
-and the previous implementation of the same computation (argsort of the values, whole-array
-temporaries; kept below for the comparison), checks that their outputs are identical, and
-measures their tracemalloc peaks. Prints the speed-up and memory ratios, bytes per pair, and the
-memory projected for 1M images at the same pair density (target: under 8 GB, and >= 2x faster).
+In one run it times ``gds_profile`` (quantiles only, and with ``keep_pairs=True``) against the two
+earlier implementations kept in bench/reference_gds.py -- before issue 12 ("previous": argsort of the
+values, whole-array temporaries) and issue 12's first pass ("first pass", commit 43078cd) -- alternating
+so that a change of load hits all alike, checks that their outputs are identical, and measures their
+tracemalloc peaks. Prints the speed-up and memory ratios, bytes per pair, and the memory projected for
+1M images at the same pair density (targets: >= 2x faster than before issue 12, 1M images under 8 GB).
+``--images N`` runs one extra measured profile of N images (e.g. 1000000; about 3 GB of RAM).
 Nothing fails on absolute time.
 
     python bench/bench_gds.py            # 100k images
@@ -17,43 +19,20 @@ Nothing fails on absolute time.
 from __future__ import annotations
 
 import argparse
-import math
+import os
+import sys
 import time
 import tracemalloc
 
 import numpy as np
 
-from scipy.spatial import cKDTree
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from reference_gds import first_pass_gds_profile, previous_gds_profile  # noqa: E402
 
-from vpr_nb.gds import (_bin_index, _bin_quantiles, _pair_descriptor_distances, _weighted_line,
-                        gds_profile, misordering_probability)
+from vpr_nb.gds import gds_profile, misordering_probability  # noqa: E402
 
 TARGET_SPEEDUP = 2.0
 TARGET_GB_1M = 8.0
-
-
-def previous_gds_profile(db, utm, max_distance, bin_width, keep_pairs, qs=(0.1, 0.5, 0.9), fit=(0.0, 25.0)):
-    """gds_profile(pairs="all") as it was before issue 12 (the reference of the ratios)."""
-    ij = cKDTree(utm).query_pairs(max_distance, output_type="ndarray")
-    i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
-    geo = np.sqrt(((utm[i] - utm[j]) ** 2).sum(axis=1))
-    keep = geo <= max_distance
-    i, j, geo = i[keep], j[keep], geo[keep]
-    desc = _pair_descriptor_distances(db, db, i, j)
-    del i, j
-    num_bins = int(math.ceil(max_distance / bin_width - 1e-9))
-    centers = bin_width * (np.arange(num_bins) + 0.5)
-    b = _bin_index(geo, bin_width, num_bins)
-    count = np.bincount(b, minlength=num_bins)
-    mean = np.bincount(b, weights=desc, minlength=num_bins) / count
-    std = np.sqrt(np.bincount(b, weights=(desc - mean[b]) ** 2, minlength=num_bins) / count)
-    order = np.argsort(desc)
-    order = order[np.argsort(b.astype(np.int16)[order], kind="stable")]
-    quant = _bin_quantiles(desc[order], count, qs)
-    f = (count > 0) & (centers >= fit[0]) & (centers <= fit[1])
-    slope, _ = _weighted_line(centers[f], mean[f], count[f].astype(np.float64))
-    return dict(count=count, mean=mean, std=std, quantiles=quant, slope=slope,
-                pair_desc=desc[order] if keep_pairs else None)
 
 
 def traced(fn, *args, **kwargs):
@@ -103,38 +82,62 @@ def position_descriptors(utm: np.ndarray, dim: int, rng: np.random.Generator, sc
     return d.astype(np.float32)
 
 
+def same_outputs(new, old: dict, keep: bool) -> None:
+    assert np.array_equal(new.count, old["count"]) and np.array_equal(new.mean, old["mean"])
+    assert np.array_equal(new.std, old["std"]) and new.slope == old["slope"]
+    assert all(np.array_equal(new.quantiles[q], old["quantiles"][q]) for q in old["quantiles"])
+    if keep:
+        assert np.array_equal(new.pair_desc, old["pair_desc"])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="10k images instead of 100k")
+    parser.add_argument("--images", type=int, default=0, help="also profile this many images once (time, peak)")
     args = parser.parse_args()
     n = 10_000 if args.quick else 100_000
     rng = np.random.default_rng(0)
     utm = street_walk(n, rng)
     desc = position_descriptors(utm, 256, rng)
+    print(f"load: {os.getloadavg()[0]:.2f} (1-min average) on {os.cpu_count()} cores")
     print(f"images: {n:,}, descriptor dim 256, pairs='all' within 25 m, 1 m bins")
+    impls = {"now": lambda keep: gds_profile(desc, utm, 25.0, 1.0, "all", keep_pairs=keep),
+             "first pass": lambda keep: first_pass_gds_profile(desc, utm, 25.0, 1.0, keep),
+             "previous": lambda keep: previous_gds_profile(desc, utm, 25.0, 1.0, keep)}
     for keep in (False, True):
-        new, _, mem_new = traced(gds_profile, desc, utm, 25.0, 1.0, "all", keep_pairs=keep)
-        old, _, mem_old = traced(previous_gds_profile, desc, utm, 25.0, 1.0, keep)
-        assert np.array_equal(new.count, old["count"]) and np.array_equal(new.mean, old["mean"])
-        assert np.array_equal(new.std, old["std"]) and new.slope == old["slope"]
-        assert all(np.array_equal(new.quantiles[q], old["quantiles"][q]) for q in old["quantiles"])
-        if keep:
-            assert np.array_equal(new.pair_desc, old["pair_desc"])
-        pairs = int(new.count.sum())
-        t_new, t_old = [], []
-        for _ in range(3):   # alternate, so that a change of load hits both alike
-            t_old.append(timed(previous_gds_profile, desc, utm, 25.0, 1.0, keep)[1])
-            t_new.append(timed(gds_profile, desc, utm, 25.0, 1.0, "all", keep_pairs=keep)[1])
-        ratio = float(np.median(np.array(t_old) / np.array(t_new)))
-        bpp_new, bpp_old = mem_new * 2 ** 20 / pairs, mem_old * 2 ** 20 / pairs
-        gb_1m = bpp_new * pairs / n * 1_000_000 / 1e9
-        print(f"[keep_pairs={keep}] {pairs:,} pairs ({pairs / n:.0f} per image), outputs identical")
-        print(f"  time: previous {np.median(t_old):.2f} s, now {np.median(t_new):.2f} s, speed-up {ratio:.2f}x "
-              f"(median of 3 alternating rounds; target >= {TARGET_SPEEDUP:.0f}x, ratio to target {ratio / TARGET_SPEEDUP:.2f})")
-        print(f"  memory (tracemalloc peak): previous {mem_old:.0f} MiB ({bpp_old:.0f} B/pair), now {mem_new:.0f} MiB "
-              f"({bpp_new:.0f} B/pair), ratio {mem_new / mem_old:.2f}; 1M images at this density: "
-              f"{gb_1m:.1f} GB (target < {TARGET_GB_1M:.0f} GB, ratio {gb_1m / TARGET_GB_1M:.2f})")
-    print(f"P(misorder 2 m vs 20 m) = {misordering_probability(new, 2.0, 20.0, 'empirical'):.3f}")
+        outs, mem = {}, {}
+        for name, fn in impls.items():
+            outs[name], _, mem[name] = traced(fn, keep)
+        for name in ("first pass", "previous"):
+            same_outputs(outs["now"], outs[name], keep)
+        pairs = int(outs["now"].count.sum())
+        times = {name: [] for name in impls}
+        for _ in range(3):   # alternate, so that a change of load hits all alike
+            for name, fn in impls.items():
+                times[name].append(timed(fn, keep)[1])
+        t = {name: np.array(v) for name, v in times.items()}
+        up_prev = float(np.median(t["previous"] / t["now"]))
+        up_first = float(np.median(t["first pass"] / t["now"]))
+        bpp = {name: mem[name] * 2 ** 20 / pairs for name in impls}
+        gb_1m = bpp["now"] * pairs / n * 1_000_000 / 1e9
+        print(f"[keep_pairs={keep}] {pairs:,} pairs ({pairs / n:.0f} per image), outputs identical to both baselines")
+        print(f"  time (median of 3 alternating rounds): previous {np.median(t['previous']):.2f} s, first pass "
+              f"{np.median(t['first pass']):.2f} s, now {np.median(t['now']):.2f} s; speed-up {up_prev:.2f}x over "
+              f"previous (target >= {TARGET_SPEEDUP:.0f}x, ratio to target {up_prev / TARGET_SPEEDUP:.2f}), "
+              f"{up_first:.2f}x over the first pass")
+        print(f"  memory (tracemalloc peak): previous {mem['previous']:.0f} MiB ({bpp['previous']:.0f} B/pair), first pass "
+              f"{mem['first pass']:.0f} MiB ({bpp['first pass']:.0f} B/pair), now {mem['now']:.0f} MiB "
+              f"({bpp['now']:.0f} B/pair); now / previous {mem['now'] / mem['previous']:.2f}, now / first pass "
+              f"{mem['now'] / mem['first pass']:.2f}; 1M images at this density: {gb_1m:.1f} GB "
+              f"(target < {TARGET_GB_1M:.0f} GB, ratio {gb_1m / TARGET_GB_1M:.2f})")
+    print(f"P(misorder 2 m vs 20 m) = {misordering_probability(outs['now'], 2.0, 20.0, 'empirical'):.3f}")
+    if args.images:
+        big_utm = street_walk(args.images, np.random.default_rng(1), blocks=int(30 * np.sqrt(args.images / n)))
+        big = position_descriptors(big_utm, 256, np.random.default_rng(2))
+        prof, secs, peak = traced(gds_profile, big, big_utm, 25.0, 1.0, "all", keep_pairs=True)
+        pairs = int(prof.count.sum())
+        print(f"[{args.images:,} images] {pairs:,} pairs, keep_pairs=True: {secs:.1f} s (traced), peak "
+              f"{peak / 1024:.2f} GiB above the inputs ({peak * 2 ** 20 / pairs:.0f} B/pair; target < {TARGET_GB_1M:.0f} GB)")
 
 
 if __name__ == "__main__":

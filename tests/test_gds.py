@@ -420,3 +420,28 @@ def _emp(old, d1, d2, width=2.5):
     x1, x2 = old["pair_desc"][start[b1]:start[b1 + 1]], old["pair_desc"][start[b2]:start[b2 + 1]]
     r, l = np.searchsorted(x1, x2, "right"), np.searchsorted(x1, x2, "left")
     return float((np.sum(len(x1) - r, dtype=np.float64) + 0.5 * np.sum(r - l, dtype=np.float64)) / (len(x1) * len(x2)))
+
+
+@pytest.mark.parametrize("mode", ["all", "query-db"])
+def test_pair_distances_equal_the_naive_per_pair_formulas(mode):
+    # the chunked column-wise geo distances and in-place descriptor differences give, pair by pair, exactly
+    # the floats of the naive formulas sqrt(((u_i - u_j) ** 2).sum()) and sqrt(einsum(d_i - d_j, d_i - d_j))
+    from vpr_nb.gds import _geo_pairs, _pair_descriptor_distances
+    rng = np.random.default_rng(5)
+    db_utm = np.cumsum(rng.normal(scale=2.0, size=(1500, 2)), axis=0) + [4.5e5, 5.1e6]
+    db = rng.normal(size=(1500, 32)).astype(np.float32)
+    q_utm = db_utm[::2] + rng.normal(scale=3.0, size=(750, 2)) if mode == "query-db" else None
+    q = rng.normal(size=(750, 32)).astype(np.float32) if mode == "query-db" else db
+    src = db_utm if q_utm is None else q_utm
+    i, j, geo = _geo_pairs(db_utm, q_utm, 20.0)
+    assert len(i) > 10_000 and (geo <= 20.0).all()
+    if mode == "all":
+        assert (i < j).all()
+    naive_geo = np.array([np.sqrt(((src[a] - db_utm[b]) ** 2).sum()) for a, b in zip(i[:3000], j[:3000])])
+    np.testing.assert_array_equal(geo[:3000], naive_geo)
+    desc = _pair_descriptor_distances(q, db, i, j)
+    naive = np.array([np.sqrt(np.einsum("i,i->", q[a] - db[b], q[a] - db[b])) for a, b in zip(i[:3000], j[:3000])],
+                     dtype=np.float32)
+    np.testing.assert_allclose(desc[:3000], naive, rtol=1e-6)
+    rows = np.sqrt(np.einsum("ij,ij->i", q[i] - db[j], q[i] - db[j]))     # one block, whole-array
+    np.testing.assert_array_equal(desc, rows)

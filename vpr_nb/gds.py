@@ -55,6 +55,7 @@ from vpr_nb._checks import as_float_matrix, as_utm, check_geo_descriptors, check
 _PAIR_MODES = ("query-db", "all")
 _METHODS = ("gaussian", "empirical")
 _CHUNK_FLOATS = 1 << 17  # floats per temporary (512 KiB, cache-sized) in the chunked loops
+_DESC_CHUNK_FLOATS = 1 << 18  # floats per gathered descriptor block (1 MiB)
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,24 +147,34 @@ def _geo_pairs(db_utm: np.ndarray, q_utm: np.ndarray | None, max_distance: float
     """Index pairs ``(i, j)`` within ``max_distance`` and their geographic distances.
 
     With ``q_utm`` the pairs are (query i, database j); without it, unordered pairs i < j of db.
+    The pairs come in the k-d tree's order (the per-bin sums below are taken in that order).
     """
     db_tree = cKDTree(db_utm)
     if q_utm is None:
         ij = db_tree.query_pairs(max_distance, output_type="ndarray")
-        i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
+        i, j = ij[:, 0], ij[:, 1]          # int64 column views: no copies
         src = db_utm
     else:
         sparse = cKDTree(q_utm).sparse_distance_matrix(db_tree, max_distance, output_type="ndarray")
         i, j = sparse["i"].astype(np.int64), sparse["j"].astype(np.int64)
         del sparse
         src = q_utm
-    # the same float operations as ``sqrt(((src[i] - db[j]) ** 2).sum(1))``, in bounded-memory chunks
+    # ``sqrt(((src[i] - db[j]) ** 2).sum(1))`` with the same float operations (the sum over the length-2
+    # axis is x + y), from separate easting/northing columns and in bounded-memory chunks
+    sx, sy = np.ascontiguousarray(src[:, 0]), np.ascontiguousarray(src[:, 1])
+    dx_all, dy_all = np.ascontiguousarray(db_utm[:, 0]), np.ascontiguousarray(db_utm[:, 1])
     geo = np.empty(len(i), dtype=np.float64)
-    step = max(1, _CHUNK_FLOATS // 2)
+    step = _CHUNK_FLOATS
     for s in range(0, len(i), step):
-        diff = src[i[s:s + step]] - db_utm[j[s:s + step]]
-        np.square(diff, out=diff)
-        geo[s:s + step] = np.sqrt(diff.sum(axis=1))
+        ii, jj = i[s:s + step], j[s:s + step]
+        dx = sx[ii]
+        dx -= dx_all[jj]
+        dy = sy[ii]
+        dy -= dy_all[jj]
+        dx *= dx
+        dy *= dy
+        dx += dy
+        np.sqrt(dx, out=geo[s:s + step])
     keep = geo <= max_distance  # the tree's own rounding may differ from ours by one ulp
     if keep.all():
         return i, j, geo
@@ -171,18 +182,25 @@ def _geo_pairs(db_utm: np.ndarray, q_utm: np.ndarray | None, max_distance: float
 
 
 def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """Euclidean distances ``||a[i] - b[j]||`` computed in bounded-memory chunks."""
+    """Euclidean distances ``||a[i] - b[j]||`` computed in bounded-memory chunks (float32, as the inputs).
+
+    Each chunk gathers ``a[i]`` and subtracts ``b[j]`` in place; one ``einsum`` row sum per pair.
+    """
     out = np.empty(len(i), dtype=np.float32)
-    chunk = max(1, _CHUNK_FLOATS // a.shape[1])
+    chunk = max(1, _DESC_CHUNK_FLOATS // a.shape[1])
     for s in range(0, len(i), chunk):
-        diff = a[i[s:s + chunk]] - b[j[s:s + chunk]]
-        out[s:s + chunk] = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-    return out
+        diff = a[i[s:s + chunk]]
+        diff -= b[j[s:s + chunk]]
+        np.einsum("ij,ij->i", diff, diff, out=out[s:s + chunk])
+    return np.sqrt(out, out=out)
 
 
 def _bin_index(geo: np.ndarray | float, bin_width: float, num_bins: int) -> np.ndarray:
     """Bin of each geographic distance (the last bin is closed on the right)."""
-    return np.minimum(np.floor(np.asarray(geo) / bin_width).astype(np.int64), num_bins - 1)
+    t = np.floor(np.asarray(geo) / bin_width)
+    b = t.astype(np.int64)
+    del t
+    return np.minimum(b, num_bins - 1, out=b) if b.ndim else np.minimum(b, num_bins - 1)
 
 
 def _bin_value_keys(b: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -321,7 +339,8 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     count = np.bincount(b, minlength=num_bins)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.bincount(b, weights=desc, minlength=num_bins) / count
-        dev = desc - mean[b]
+        dev = mean[b]
+        np.subtract(desc, dev, out=dev)   # the float64 values of ``desc - mean[b]``, one temporary
         np.square(dev, out=dev)
         std = np.sqrt(np.bincount(b, weights=dev, minlength=num_bins) / count)
         del dev
