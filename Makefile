@@ -49,8 +49,11 @@ assignments: venv
 lab: venv
 	$(BIN)/jupyter lab notebooks $$(test "$$(id -u)" = 0 && echo --allow-root)
 
+# every bench runs even if one fails (a failure is a broken invariant or a ratio, never absolute time);
+# the failed ones are listed at the end and make the target fail
 bench: venv
-	for f in bench/bench_*.py; do echo "== $$f"; $(BIN)/python $$f --quick || exit 1; done
+	@failed=""; for f in bench/bench_*.py; do echo "== $$f"; $(BIN)/python $$f --quick || failed="$$failed $$f"; done; \
+	if [ -n "$$failed" ]; then echo "bench failures:$$failed"; exit 1; fi; echo "all benches ran"
 
 clean:
 	rm -rf reports assignments .pytest_cache
