@@ -456,21 +456,120 @@ def _visible_segments(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_d
     return out
 
 
-def _render(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray, pitch_px: np.ndarray,
-            conds: list[dict], layers: int = 4) -> np.ndarray:
-    """Ray-cast a batch of cameras. Returns float images (N, H, W, 3) in [0, 1] before noise."""
-    H, W = cfg.image_size
-    N = len(pos)
-    f = (W / 2) / np.tan(np.radians(cfg.fov) / 2)
-    cols = (np.arange(W) - W / 2 + 0.5) / f
-    ang = np.radians(heading_deg)[:, None] - np.arctan(cols)[None, :]           # (N, W), x right = clockwise
-    d = np.stack([np.cos(ang), np.sin(ang)], -1)                                 # (N, W, 2)
-    corr = 1.0 / np.sqrt(1 + cols ** 2)                                          # perspective (planar) distance
-    rows = (H / 2 - np.arange(H) - 0.5)[None, :] + pitch_px[:, None]             # (N, H)
-    tan_el = rows / f                                                            # vertical: same focal
+# Rendering constants: lengths in metres, colours rgb in [0, 1]. Any change of a value changes pixels
+# (tests/test_synthetic.py pins rendered worlds by hash).
+NEAR_CLIP = 0.3                    # wall hits nearer than this to the camera are ignored
+GROUND_RANGE = 10                  # the ground plane is drawn up to GROUND_RANGE x view_distance
+# Trees are two crossed quads (_tree_segments) textured in quad coordinates: `across` runs -0.5..0.5
+# over the quad's width, `up` is the height over the tree's height. Canopy = an ellipse, trunk = a strip.
+TREE_CROWN_CENTRE = 0.62           # canopy centre height and trunk top (fraction of the tree height)
+TREE_CROWN_AXES2 = (0.25, 0.16)    # squared semi-axes of the canopy ellipse (across, up)
+TREE_TRUNK_HALF_WIDTH = 0.07       # half width of the trunk (fraction of the quad width)
+LEAF_CELLS_PER_M = 3               # leaf gaps: one hash value per 1/3 m x 1/3 m cell of the quad
+SNOW_LEAF_LOSS = 0.75              # fraction of the leaves gone at snow = 1
+# Fences: a post every FENCE_POST_SPACING m, FENCE_POST_WIDTH wide, and one rail.
+FENCE_POST_SPACING, FENCE_POST_WIDTH = 2.0, 0.25
+FENCE_RAIL_HEIGHT, FENCE_RAIL_HALF_HEIGHT = 0.9, 0.12
+# Facades (window spacing, floor height and window size are per style, in the scene's style table).
+FACADE_BAND_FROM = 0.88            # styles with bands: the top 12 % of every floor is a dark band
+SHOP_TOP = 0.8                     # shop windows (styles with a shop floor): up to 0.8 floor heights,
+SHOP_BOTTOM = 0.4                  # from 0.4 m above the street,
+SHOP_BAY, SHOP_WINDOW = 6.0, 4.5   # 4.5 m of glass in every 6 m bay
+ROOF_TRIM = 0.6                    # a dark trim this high (m) under the roofline
+TRIM_DARKEN = 0.6                  # bands and roof trim: base colour x 0.6
+LIT_WINDOW_SHARE = 0.5             # hash threshold: half of the windows can be lit ...
+LIT_THRESHOLD = 0.5                # ... and are, when the condition's `lit` exceeds this
+# Ground.
+SIDEWALK_WIDTH = 3.0               # city: sidewalk along the blocks, inside the street's half width
+LANE_MARKING_HALF_WIDTH = 0.15     # city: dashed centre line of each street between intersections
+DASH_PERIOD, DASH_LENGTH = 6, 3    # (dashes along x + y, in metres)
+TRACK_HALF_WIDTH = 1.6             # route: ballast bed on each side of the track's centre line
+RAIL_BAND = (0.7, 0.9)             # route: the rails, at these distances from the centre line
+SNOW_FREE_TRACK = 1.0              # route: no snow this close to the centre line
+GRASS_PATCH = 4                    # route: grass brightness varies per 4 m x 4 m patch
+# Sky, far skyline and atmosphere.
+SKYLINE_DEPTH = 2000.0             # depth (m) of the far skyline, for the fog
+FOG_MAX_DEPTH = 5000.0             # depths are clamped to this before the fog falloff
+FOG_SKY_FACTOR = 0.8               # the fog's colour is 0.8 x the sky colour
 
-    # Per-camera culling: keep segments near the camera and inside the (widened) view frustum, then
-    # gather them into a padded (N, S) table so the ray/segment tests are N x W x S with S small.
+
+def _rgb(r: float, g: float, b: float) -> np.ndarray:
+    """A read-only colour constant."""
+    c = np.array([r, g, b])
+    c.flags.writeable = False
+    return c
+
+
+TRUNK_COLOUR = _rgb(0.35, 0.25, 0.18)
+LIT_WINDOW_COLOUR, DARK_WINDOW_COLOUR = _rgb(1.0, 0.85, 0.45), _rgb(0.12, 0.16, 0.22)
+ROAD_COLOUR, SIDEWALK_COLOUR, MARKING_COLOUR = _rgb(0.30, 0.30, 0.32), _rgb(0.62, 0.60, 0.56), _rgb(0.9, 0.9, 0.8)
+BALLAST_COLOUR, RAIL_COLOUR, GRASS_COLOUR = _rgb(0.38, 0.34, 0.30), _rgb(0.6, 0.6, 0.62), _rgb(0.25, 0.42, 0.18)
+SNOW_COLOUR = _rgb(0.93, 0.94, 0.97)
+CITY_SKYLINE_COLOUR, ROUTE_SKYLINE_COLOUR = _rgb(0.42, 0.45, 0.52), _rgb(0.30, 0.40, 0.42)
+SNOWY_SKYLINE_COLOUR = _rgb(0.9, 0.9, 0.95)
+
+
+@dataclass
+class _Rays:
+    """One ray per pixel of N pinhole cameras of H x W pixels. The world is 2.5-D, so a ray is a column's
+    direction on the ground plane and a row's elevation."""
+
+    pos: np.ndarray      # (N, 2) camera positions
+    d: np.ndarray        # (N, W, 2) unit ground-plane direction of each column
+    corr: np.ndarray     # (W,) cos of the column's angle off the view axis: planar depth = distance x corr
+    tan_el: np.ndarray   # (N, H) tangent of each row's elevation angle (pitch jitter included)
+
+
+@dataclass
+class _Hits:
+    """The K nearest segment hits of every column ray, nearest first (t = inf where a layer has no hit)."""
+
+    seg: np.ndarray      # (N, W, K) segment index into the scene
+    t: np.ndarray        # (N, W, K) distance along the ground-plane ray (m)
+    s: np.ndarray        # (N, W, K) where the ray crosses the segment: 0 at its start a, 1 at its end b
+
+
+@dataclass
+class _Frame:
+    """The images being drawn: colour, planar depth (for the fog) and which pixels are drawn already."""
+
+    img: np.ndarray      # (N, H, W, 3)
+    depth: np.ndarray    # (N, H, W)
+    filled: np.ndarray   # (N, H, W) bool
+
+    def draw(self, n_idx, h_idx, w_idx, colour, depth) -> None:
+        self.img[n_idx, h_idx, w_idx] = colour
+        self.depth[n_idx, h_idx, w_idx] = depth
+        self.filled[n_idx, h_idx, w_idx] = True
+
+
+def _stack_conditions(conds: list[dict]) -> dict[str, np.ndarray]:
+    """The condition parameters of N cameras as arrays with one row per camera (sun azimuth in radians)."""
+    out = {k: np.array([c[k] for c in conds]) for k in conds[0]}
+    out["sun"] = np.array([np.radians(c["sun"]) for c in conds])
+    return out
+
+
+def _camera_rays(cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray, pitch_px: np.ndarray) -> _Rays:
+    """Stage 1a: the rays of pinhole cameras (horizontal ``cfg.fov``, square pixels, x right = clockwise);
+    ``pitch_px`` moves the horizon up or down by that many pixels."""
+    H, W = cfg.image_size
+    f = (W / 2) / np.tan(np.radians(cfg.fov) / 2)                                # focal length (pixels)
+    cols = (np.arange(W) - W / 2 + 0.5) / f
+    ang = np.radians(heading_deg)[:, None] - np.arctan(cols)[None, :]           # (N, W)
+    d = np.stack([np.cos(ang), np.sin(ang)], -1)                                 # (N, W, 2)
+    corr = 1.0 / np.sqrt(1 + cols ** 2)
+    rows = (H / 2 - np.arange(H) - 0.5)[None, :] + pitch_px[:, None]             # (N, H)
+    return _Rays(pos=pos, d=d, corr=corr, tan_el=rows / f)                       # vertical: same focal
+
+
+def _cast_rays(scene: Scene, cfg: WorldConfig, rays: _Rays, heading_deg: np.ndarray, layers: int) -> _Hits:
+    """Stage 1b: intersect every column ray with the vertical segments; keep the ``layers`` nearest hits.
+
+    Per-camera culling (:func:`_visible_segments`) keeps the segments near the camera and inside the
+    (widened) view frustum, gathered into a padded (N, S) table, so the ray/segment tests are N x W x S
+    with S small. Several layers are kept because trees and fences have gaps to see through."""
+    pos, d = rays.pos, rays.d
     cand = _visible_segments(scene, cfg, pos, heading_deg)                      # (N, S) indices, -1 = pad
     safe = np.maximum(cand, 0)
     A, e = scene.a[safe], (scene.b - scene.a)[safe]                              # (N, S, 2)
@@ -481,147 +580,246 @@ def _render(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         t = num_t / den
         s = num_s / den
-    ok = (np.abs(den) > 1e-9) & (t > 0.3) & (t < cfg.view_distance) & (s >= 0) & (s <= 1) & (cand >= 0)[:, None, :]
+    ok = ((np.abs(den) > 1e-9) & (t > NEAR_CLIP) & (t < cfg.view_distance) & (s >= 0) & (s <= 1)
+          & (cand >= 0)[:, None, :])
     t = np.where(ok, t, np.inf)
     K = min(layers, t.shape[-1])
-    order = np.argpartition(t, K - 1, axis=-1)[..., :K] if t.shape[-1] > K else np.broadcast_to(np.arange(t.shape[-1]), t.shape)
+    if t.shape[-1] > K:
+        order = np.argpartition(t, K - 1, axis=-1)[..., :K]
+    else:
+        order = np.broadcast_to(np.arange(t.shape[-1]), t.shape)
     tk = np.take_along_axis(t, order, -1)
     sk = np.take_along_axis(s, order, -1)
     srt = np.argsort(tk, -1)
     order, tk, sk = (np.take_along_axis(x, srt, -1) for x in (order, tk, sk))     # (N, W, K) nearest first
     seg = np.take_along_axis(np.broadcast_to(safe[:, None, :], t.shape), order, -1)
+    return _Hits(seg=seg, t=tk, s=sk)
 
-    img = np.zeros((N, H, W, 3))
-    depth = np.full((N, H, W), np.inf)
-    filled = np.zeros((N, H, W), dtype=bool)
+
+def _tree_coverage(scene: Scene, u: np.ndarray, z: np.ndarray, seglen: np.ndarray, sgb: np.ndarray,
+                   snow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where a tree quad is solid: (solid, trunk) masks over (N, H, W).
+
+    The trunk strip, and the canopy ellipse with hashed leaf gaps (more gaps with snow: bare winter
+    trees). ``u`` and ``z`` are the texture coordinate along the quad and the height (m), ``seglen``
+    (N, W) the quad widths, ``sgb`` the segment of each pixel, ``snow`` (N,) the condition's snow."""
+    across = (u - scene.u0[sgb]) / np.maximum(seglen[:, None, :], 1e-6) - 0.5
+    up = z / scene.z1[sgb]
+    canopy = (across ** 2 / TREE_CROWN_AXES2[0] + (up - TREE_CROWN_CENTRE) ** 2 / TREE_CROWN_AXES2[1]) < 1.0
+    trunk = (np.abs(across) < TREE_TRUNK_HALF_WIDTH) & (up < TREE_CROWN_CENTRE)
+    uu = np.nan_to_num(u * LEAF_CELLS_PER_M, posinf=0, neginf=0)
+    zq = np.nan_to_num(z * LEAF_CELLS_PER_M, posinf=0, neginf=0)
+    leaf_keep = _hash01(uu.astype(np.int64), zq.astype(np.int64), sgb) < (1.0 - SNOW_LEAF_LOSS * snow[:, None, None])
+    return trunk | (canopy & leaf_keep), trunk
+
+
+def _fence_coverage(u: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Where a fence is solid: its posts and its rail."""
+    return ((u % FENCE_POST_SPACING) < FENCE_POST_WIDTH) | (np.abs(z - FENCE_RAIL_HEIGHT) < FENCE_RAIL_HALF_HEIGHT)
+
+
+def _facade_albedo(scene: Scene, col: np.ndarray, sgp: np.ndarray, up: np.ndarray, zp: np.ndarray,
+                   wall: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Wall material: the facade texture of the ``wall`` pixels, over their base colour ``col``.
+
+    From the segment's style: a window grid above the ground floor (window spacing, floor height,
+    window width/height fractions), shop windows on the ground floor, dark bands under each floor's
+    top; every wall has a dark roof trim. Windows are dark glass, or warm light where the condition
+    lights windows (``lit``, dusk) and the window's hash picks it. Returns (albedo, glow): glow marks
+    the lit windows, which keep their colour whatever the lighting."""
     styles = scene.road["styles"]
-    sun = np.array([np.radians(c["sun"]) for c in conds])
-    for k in range(K):
-        tk_k = tk[..., k]                                                        # (N, W)
+    stl = styles[scene.style[sgp] % len(styles)]  # non-wall segments reuse small style ids
+    spacing, floor, win_w, win_h, has_band, has_shop = (stl[:, i] for i in range(3, 9))
+    win = ((up % spacing) / spacing < win_w) & (((zp % floor) / floor) < win_h) & (zp > floor)
+    band = (has_band > 0) & (((zp % floor) / floor) > FACADE_BAND_FROM)
+    shop = (has_shop > 0) & (zp < floor * SHOP_TOP) & (zp > SHOP_BOTTOM) & ((up % SHOP_BAY) < SHOP_WINDOW)
+    roofline = zp > scene.z1[sgp] - ROOF_TRIM
+    lit_on = _hash01((up / spacing).astype(int), (zp / floor).astype(int), sgp) < LIT_WINDOW_SHARE
+    glowing = (lit * lit_on) > LIT_THRESHOLD
+    glass = wall & (win | shop)
+    col = np.where(glass[:, None], np.where(glowing[:, None], LIT_WINDOW_COLOUR, DARK_WINDOW_COLOUR), col)
+    col = np.where((wall & (band | roofline))[:, None], col * TRIM_DARKEN, col)
+    return col, glass & glowing
+
+
+def _tree_albedo(col: np.ndarray, tree: np.ndarray, trunk: np.ndarray, foliage: np.ndarray,
+                 base: np.ndarray) -> np.ndarray:
+    """Tree material: trunk pixels brown, the ``tree`` pixels' canopy in the condition's ``foliage``
+    colour, varied per tree by its base colour (x (0.7 + 1.2 base) / 1.3: a channel of 0.5, the mean
+    green of :func:`_tree_segments`, keeps the foliage colour)."""
+    col = np.where((tree & ~trunk)[:, None], foliage * (0.7 + 0.6 * base / 0.5) / 1.3, col)
+    return np.where(trunk[:, None], TRUNK_COLOUR, col)
+
+
+def _sun_shading(scene: Scene, sgp: np.ndarray, sun: np.ndarray, ambient: np.ndarray) -> np.ndarray:
+    """Lambert shading of vertical walls lit from azimuth ``sun`` (rad): ambient + (1 - ambient) x
+    |cos(wall normal, sun)| (both faces of a segment alike)."""
+    e_p = scene.b[sgp] - scene.a[sgp]
+    nrm = np.stack([e_p[:, 1], -e_p[:, 0]], 1) / np.maximum(np.linalg.norm(e_p, axis=1, keepdims=True), 1e-9)
+    sun_v = np.stack([np.cos(sun), np.sin(sun)], 1)
+    lam = np.abs((nrm * sun_v).sum(1))
+    return ambient + (1 - ambient) * lam
+
+
+def _shade_segment_pixels(scene: Scene, sgp: np.ndarray, up: np.ndarray, zp: np.ndarray, trunk: np.ndarray,
+                          cond: dict, n_idx: np.ndarray) -> np.ndarray:
+    """Colour (P, 3) of P segment pixels: the material's albedo (walls: facade texture; trees: foliage
+    and trunk; poles and fences: their flat base colour) times the sun shading; lit windows glow on top.
+    ``sgp``: segment, ``up``/``zp``: texture coordinate and height, ``trunk``: on a tree's trunk,
+    ``n_idx``: camera of each pixel."""
+    kind = scene.kind[sgp]
+    wall = kind == WALL
+    col, glow = _facade_albedo(scene, scene.colour[sgp].copy(), sgp, up, zp, wall, cond["lit"][n_idx])
+    col = _tree_albedo(col, kind == TREE, trunk, cond["foliage"][n_idx], scene.colour[sgp])
+    col = col * _sun_shading(scene, sgp, cond["sun"][n_idx], cond["ambient"][n_idx])[:, None]
+    return np.where(glow[:, None], LIT_WINDOW_COLOUR, col)
+
+
+def _draw_segments(scene: Scene, cfg: WorldConfig, rays: _Rays, hits: _Hits, cond: dict, frame: _Frame) -> None:
+    """Stage 2: walls, trees, poles and fences, one hit layer at a time, nearest first.
+
+    A layer covers a pixel where the row's ray meets the hit segment between its bottom and top
+    height, the material is solid there (trees and fences have gaps: :func:`_tree_coverage`,
+    :func:`_fence_coverage`) and no nearer layer drew it; covered pixels get their material colour
+    (:func:`_shade_segment_pixels`) and their planar depth."""
+    N, H, W = frame.filled.shape
+    for k in range(hits.t.shape[-1]):
+        tk_k = hits.t[..., k]                                                    # (N, W)
         valid = np.isfinite(tk_k)
         if not valid.any():
             continue
-        sg = seg[..., k]
-        plan = tk_k * corr[None, :]                                              # distance along the view axis
-        z = cfg.camera_height + plan[:, None, :] * tan_el[:, :, None]  # (N, H, W)
+        sg = hits.seg[..., k]
+        plan = tk_k * rays.corr[None, :]                                         # distance along the view axis
+        z = cfg.camera_height + plan[:, None, :] * rays.tan_el[:, :, None]      # (N, H, W) height of the hit
         z0, z1 = scene.z0[sg][:, None, :], scene.z1[sg][:, None, :]
-        inside = valid[:, None, :] & (z >= z0) & (z <= z1) & ~filled
-        # texture coordinate along the wall (m)
+        inside = valid[:, None, :] & (z >= z0) & (z <= z1) & ~frame.filled
+        # texture coordinate along the segment (m)
         seglen = np.linalg.norm(scene.b[sg] - scene.a[sg], axis=-1)
-        u = (sk[..., k] * seglen + scene.u0[sg])[:, None, :] * np.ones((1, H, 1))
+        u = (hits.s[..., k] * seglen + scene.u0[sg])[:, None, :] * np.ones((1, H, 1))
         kind = scene.kind[sg][:, None, :] * np.ones((1, H, 1), dtype=np.int64)
         sgb = np.broadcast_to(sg[:, None, :], (N, H, W))
-        # alpha for trees / poles / fences
+        trunk = None
         if (kind == TREE).any():
-            rel = (u - scene.u0[sgb]) / np.maximum(seglen[:, None, :], 1e-6) - 0.5        # -0.5..0.5 across
-            zz = z / scene.z1[sgb]
-            canopy = (rel ** 2 / 0.25 + (zz - 0.62) ** 2 / 0.16) < 1.0
-            trunk = (np.abs(rel) < 0.07) & (zz < 0.62)
-            snowy = np.array([c["snow"] for c in conds])[:, None, None]
-            uu, zq = np.nan_to_num(u * 3, posinf=0, neginf=0), np.nan_to_num(z * 3, posinf=0, neginf=0)
-            leaf_keep = _hash01(uu.astype(np.int64), zq.astype(np.int64), sgb) < (1.0 - 0.75 * snowy)
-            tree_solid = trunk | (canopy & leaf_keep)
+            tree_solid, trunk = _tree_coverage(scene, u, z, seglen, sgb, cond["snow"])
             inside &= np.where(kind == TREE, tree_solid, True)
         if (kind == FENCE).any():
-            fence_solid = ((u % 2.0) < 0.25) | (np.abs(z - 0.9) < 0.12)
-            inside &= np.where(kind == FENCE, fence_solid, True)
+            inside &= np.where(kind == FENCE, _fence_coverage(u, z), True)
         if not inside.any():
             continue
         n_idx, h_idx, w_idx = np.nonzero(inside)
         sgp = sg[n_idx, w_idx]
-        up, zp, kp = u[n_idx, h_idx, w_idx], z[n_idx, h_idx, w_idx], scene.kind[sgp]
-        col = scene.colour[sgp].copy()
-        # facade texture: windows, bands, shop floor
-        stl = styles[scene.style[sgp] % len(styles)]  # non-wall segments reuse small style ids
-        wall = kp == WALL
-        win = ((up % stl[:, 3]) / stl[:, 3] < stl[:, 5]) & (((zp % stl[:, 4]) / stl[:, 4]) < stl[:, 6]) & (zp > stl[:, 4])
-        band = (stl[:, 7] > 0) & (((zp % stl[:, 4]) / stl[:, 4]) > 0.88)
-        shop = (stl[:, 8] > 0) & (zp < stl[:, 4] * 0.8) & (zp > 0.4) & ((up % 6.0) < 4.5)
-        roofline = zp > scene.z1[sgp] - 0.6
-        lit = np.array([c["lit"] for c in conds])[n_idx]
-        lit_on = _hash01((up / stl[:, 3]).astype(int), (zp / stl[:, 4]).astype(int), sgp) < 0.5
-        win_col = np.where((lit * lit_on)[:, None] > 0.5, np.array([1.0, 0.85, 0.45]), np.array([0.12, 0.16, 0.22]))
-        col = np.where((wall & (win | shop))[:, None], win_col, col)
-        col = np.where((wall & (band | roofline))[:, None], col * 0.6, col)
-        # trees: foliage colour from the condition, trunk brown
-        foliage = np.array([c["foliage"] for c in conds])[n_idx]
-        is_tree = kp == TREE
-        seglen_p = np.linalg.norm(scene.b[sgp] - scene.a[sgp], axis=-1)
-        rel_p = (up - scene.u0[sgp]) / np.maximum(seglen_p, 1e-6) - 0.5
-        trunk_p = is_tree & (np.abs(rel_p) < 0.07) & (zp / scene.z1[sgp] < 0.62)
-        col = np.where((is_tree & ~trunk_p)[:, None], foliage * (0.7 + 0.6 * scene.colour[sgp] / 0.5) / 1.3, col)
-        col = np.where(trunk_p[:, None], np.array([0.35, 0.25, 0.18]), col)
-        # directional shading: wall normal vs sun azimuth
-        e_p = scene.b[sgp] - scene.a[sgp]
-        nrm = np.stack([e_p[:, 1], -e_p[:, 0]], 1) / np.maximum(np.linalg.norm(e_p, axis=1, keepdims=True), 1e-9)
-        sun_v = np.stack([np.cos(sun[n_idx]), np.sin(sun[n_idx])], 1)
-        lam = np.abs((nrm * sun_v).sum(1))
-        amb = np.array([c["ambient"] for c in conds])[n_idx]
-        shade = amb + (1 - amb) * lam
-        col = col * shade[:, None]
-        col = np.where((wall & (win | shop))[:, None] & ((lit * lit_on) > 0.5)[:, None], win_col, col)
-        img[n_idx, h_idx, w_idx] = col
-        depth[n_idx, h_idx, w_idx] = plan[n_idx, w_idx]
-        filled[n_idx, h_idx, w_idx] = True
+        on_trunk = np.zeros(len(sgp), dtype=bool) if trunk is None else \
+            (scene.kind[sgp] == TREE) & trunk[n_idx, h_idx, w_idx]
+        col = _shade_segment_pixels(scene, sgp, u[n_idx, h_idx, w_idx], z[n_idx, h_idx, w_idx], on_trunk, cond, n_idx)
+        frame.draw(n_idx, h_idx, w_idx, col, plan[n_idx, w_idx])
 
-    # ground plane
-    below = tan_el < 0                                                            # (N, H)
+
+def _city_ground(gp: np.ndarray, pitch: float, half: float) -> np.ndarray:
+    """City ground colour at points ``gp`` (P, 2): streets every ``pitch`` m along x and y (``half``:
+    half the street width) with asphalt between the sidewalks and a dashed centre line between the
+    intersections; paving on the sidewalks and inside the blocks."""
+    ox = np.abs(((gp[:, 0] + pitch / 2) % pitch) - pitch / 2)   # distance to the nearest street's centre line
+    oy = np.abs(((gp[:, 1] + pitch / 2) % pitch) - pitch / 2)
+    road = (ox < half - SIDEWALK_WIDTH) | (oy < half - SIDEWALK_WIDTH)
+    marking = ((ox < LANE_MARKING_HALF_WIDTH) & (oy > half)) | ((oy < LANE_MARKING_HALF_WIDTH) & (ox > half))
+    gcol = np.where(road[:, None], ROAD_COLOUR, SIDEWALK_COLOUR)
+    return np.where((marking & ((gp.sum(1) % DASH_PERIOD) < DASH_LENGTH))[:, None], MARKING_COLOUR, gcol)
+
+
+def _route_ground(gp: np.ndarray, track_tree: cKDTree, snow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Route ground colour at points ``gp`` (P, 2): the track (ballast bed and two rails, from the
+    distance to the track's centre line) through patchy grass. Returns (colour, snow cover): no snow
+    on the track's middle."""
+    dd, _ = track_tree.query(gp)
+    track = dd < TRACK_HALF_WIDTH
+    patch = _hash01((gp[:, 0] / GRASS_PATCH).astype(int), (gp[:, 1] / GRASS_PATCH).astype(int))
+    grass = GRASS_COLOUR * (0.85 + 0.3 * patch)[:, None]
+    gcol = np.where(track[:, None], BALLAST_COLOUR, grass)
+    gcol = np.where((track & (dd > RAIL_BAND[0]) & (dd < RAIL_BAND[1]))[:, None], RAIL_COLOUR, gcol)
+    return gcol, snow * (~track | (dd > SNOW_FREE_TRACK))
+
+
+def _draw_ground(scene: Scene, cfg: WorldConfig, rays: _Rays, cond: dict, frame: _Frame) -> None:
+    """Stage 3: the ground plane below the horizon where no segment was drawn, up to GROUND_RANGE x
+    view_distance: the city's or the route's texture, under the condition's snow, lit by
+    0.6 + 0.4 x ambient (no sun shading)."""
+    below = rays.tan_el < 0                                                       # (N, H)
     with np.errstate(divide="ignore"):
-        tg = np.where(below, cfg.camera_height / np.maximum(-tan_el, 1e-9), np.inf)    # planar distance (N, H)
-    gmask = below[:, :, None] & ~filled & (tg[:, :, None] < 10 * cfg.view_distance)
+        tg = np.where(below, cfg.camera_height / np.maximum(-rays.tan_el, 1e-9), np.inf)   # planar distance (N, H)
+    gmask = below[:, :, None] & ~frame.filled & (tg[:, :, None] < GROUND_RANGE * cfg.view_distance)
     n_idx, h_idx, w_idx = np.nonzero(gmask)
-    dist = tg[n_idx, h_idx] / corr[w_idx]
-    gp = pos[n_idx] + d[n_idx, w_idx] * dist[:, None]
-    snow = np.array([c["snow"] for c in conds])[n_idx]
+    dist = tg[n_idx, h_idx] / rays.corr[w_idx]
+    gp = rays.pos[n_idx] + rays.d[n_idx, w_idx] * dist[:, None]                  # ground point of each pixel
+    snow = cond["snow"][n_idx]
     if scene.ground_kind == "city":
-        pitch, half = scene.road["pitch"], scene.road["half"]
-        ox = np.abs(((gp[:, 0] + pitch / 2) % pitch) - pitch / 2)
-        oy = np.abs(((gp[:, 1] + pitch / 2) % pitch) - pitch / 2)
-        road = (ox < half - 3) | (oy < half - 3)
-        marking = ((ox < 0.15) & (oy > half)) | ((oy < 0.15) & (ox > half))
-        gcol = np.where(road[:, None], np.array([0.30, 0.30, 0.32]), np.array([0.62, 0.60, 0.56]))
-        gcol = np.where((marking & ((gp.sum(1) % 6) < 3))[:, None], np.array([0.9, 0.9, 0.8]), gcol)
+        gcol = _city_ground(gp, scene.road["pitch"], scene.road["half"])
     else:
-        dd, _ = scene.road["track_tree"].query(gp)
-        rail = dd < 1.6
-        grass = np.array([0.25, 0.42, 0.18]) * (0.85 + 0.3 * _hash01((gp[:, 0] / 4).astype(int), (gp[:, 1] / 4).astype(int)))[:, None]
-        gcol = np.where(rail[:, None], np.array([0.38, 0.34, 0.30]), grass)
-        gcol = np.where((rail & (dd > 0.7) & (dd < 0.9))[:, None], np.array([0.6, 0.6, 0.62]), gcol)
-        snow = snow * (~rail | (dd > 1.0))
-    gcol = gcol * (1 - snow[:, None]) + np.array([0.93, 0.94, 0.97]) * snow[:, None]
-    amb = np.array([c["ambient"] for c in conds])[n_idx]
-    img[n_idx, h_idx, w_idx] = gcol * (0.6 + 0.4 * amb)[:, None]
-    depth[n_idx, h_idx, w_idx] = tg[n_idx, h_idx]
-    filled[n_idx, h_idx, w_idx] = True
+        gcol, snow = _route_ground(gp, scene.road["track_tree"], snow)
+    gcol = gcol * (1 - snow[:, None]) + SNOW_COLOUR * snow[:, None]
+    amb = cond["ambient"][n_idx]
+    frame.draw(n_idx, h_idx, w_idx, gcol * (0.6 + 0.4 * amb)[:, None], tg[n_idx, h_idx])
 
-    # sky and far skyline (ring of radius sky_radius around the world centre)
-    rest = ~filled
-    n_idx, h_idx, w_idx = np.nonzero(rest)
-    O = pos[n_idx] - scene.sky_center
-    dv = d[n_idx, w_idx]
-    bq = (O * dv).sum(1)
-    cq = (O ** 2).sum(1) - scene.sky_radius ** 2
-    tr_ = -bq + np.sqrt(np.maximum(bq ** 2 - cq, 0))
-    hit = O + dv * tr_[:, None]
-    a_idx = ((np.arctan2(hit[:, 1], hit[:, 0]) % (2 * np.pi)) / (2 * np.pi) * len(scene.sky_profile)).astype(int) % len(scene.sky_profile)
+
+def _draw_sky(scene: Scene, rays: _Rays, cond: dict, frame: _Frame) -> None:
+    """Stage 4: every pixel still empty. The far skyline is a height profile on a ring of radius
+    ``sky_radius`` around the world centre (almost no parallax), blended towards the sky colour and
+    whitened by snow; above it the sky, a little darker towards the top of the image."""
+    H = frame.filled.shape[1]
+    n_idx, h_idx, w_idx = np.nonzero(~frame.filled)
+    origin = rays.pos[n_idx] - scene.sky_center                                   # camera, from the ring's centre
+    dv = rays.d[n_idx, w_idx]
+    bq = (origin * dv).sum(1)
+    cq = (origin ** 2).sum(1) - scene.sky_radius ** 2
+    tr_ = -bq + np.sqrt(np.maximum(bq ** 2 - cq, 0))                              # distance to the ring
+    hit = origin + dv * tr_[:, None]
+    n_prof = len(scene.sky_profile)
+    a_idx = ((np.arctan2(hit[:, 1], hit[:, 0]) % (2 * np.pi)) / (2 * np.pi) * n_prof).astype(int) % n_prof
     elev = scene.sky_profile[a_idx] / tr_
-    is_sky = tan_el[n_idx, h_idx] * corr[w_idx] > elev
-    skyc = np.array([c["sky"] for c in conds])[n_idx]
-    snow = np.array([c["snow"] for c in conds])[n_idx]
+    is_sky = rays.tan_el[n_idx, h_idx] * rays.corr[w_idx] > elev
+    skyc = cond["sky"][n_idx]
+    snow = cond["snow"][n_idx]
     grad = (0.85 + 0.15 * np.clip(h_idx / H * 2, 0, 1))[:, None]
-    far_colour = np.array([0.42, 0.45, 0.52]) if scene.ground_kind == "city" else np.array([0.30, 0.40, 0.42])
-    farc = 0.45 * skyc + 0.55 * far_colour * (1 - 0.5 * snow)[:, None] + 0.45 * snow[:, None] * np.array([0.9, 0.9, 0.95])
-    img[n_idx, h_idx, w_idx] = np.where(is_sky[:, None], skyc * grad, farc)
-    depth[n_idx, h_idx, w_idx] = np.where(is_sky, np.inf, 2000.0)
+    far_colour = CITY_SKYLINE_COLOUR if scene.ground_kind == "city" else ROUTE_SKYLINE_COLOUR
+    farc = 0.45 * skyc + 0.55 * far_colour * (1 - 0.5 * snow)[:, None] + 0.45 * snow[:, None] * SNOWY_SKYLINE_COLOUR
+    frame.draw(n_idx, h_idx, w_idx, np.where(is_sky[:, None], skyc * grad, farc),
+               np.where(is_sky, np.inf, SKYLINE_DEPTH))
 
-    # fog, global illumination and tint
-    fog = np.array([c["fog"] for c in conds])[:, None, None]
-    skyc = np.array([c["sky"] for c in conds])[:, None, None, :]
-    fogmix = 1 - np.exp(-np.minimum(depth, 5000.0) / fog)
-    img = img * (1 - fogmix[..., None]) + 0.8 * skyc * fogmix[..., None]
-    bright = np.array([c["bright"] for c in conds])[:, None, None, None]
-    tint = np.array([c["tint"] for c in conds])[:, None, None, :]
+
+def _atmosphere(img: np.ndarray, depth: np.ndarray, cond: dict) -> np.ndarray:
+    """Stage 5: fog (a mix towards FOG_SKY_FACTOR x the sky colour, 1 - exp(-depth / fog distance)),
+    then the condition's global brightness and colour tint; clipped to [0, 1]."""
+    fog = cond["fog"][:, None, None]
+    skyc = cond["sky"][:, None, None, :]
+    fogmix = 1 - np.exp(-np.minimum(depth, FOG_MAX_DEPTH) / fog)
+    img = img * (1 - fogmix[..., None]) + FOG_SKY_FACTOR * skyc * fogmix[..., None]
+    bright = cond["bright"][:, None, None, None]
+    tint = cond["tint"][:, None, None, :]
     return np.clip(img * bright * tint, 0, 1)
+
+
+def _render(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray, pitch_px: np.ndarray,
+            conds: list[dict], layers: int = 4) -> np.ndarray:
+    """Ray-cast a batch of cameras. Returns float images (N, H, W, 3) in [0, 1] before noise.
+
+    Each stage draws only the pixels the stages before it left empty:
+
+    1. rays (:func:`_camera_rays`) and their ``layers`` nearest segment hits (:func:`_cast_rays`);
+    2. walls, trees, poles and fences (:func:`_draw_segments`): coverage, material, sun shading;
+    3. the ground plane (:func:`_draw_ground`);
+    4. the far skyline and the sky (:func:`_draw_sky`);
+    5. fog, brightness and tint over the whole image (:func:`_atmosphere`).
+    """
+    H, W = cfg.image_size
+    N = len(pos)
+    rays = _camera_rays(cfg, pos, heading_deg, pitch_px)
+    hits = _cast_rays(scene, cfg, rays, heading_deg, layers)
+    cond = _stack_conditions(conds)
+    frame = _Frame(img=np.zeros((N, H, W, 3)), depth=np.full((N, H, W), np.inf),
+                   filled=np.zeros((N, H, W), dtype=bool))
+    _draw_segments(scene, cfg, rays, hits, cond, frame)
+    _draw_ground(scene, cfg, rays, cond, frame)
+    _draw_sky(scene, rays, cond, frame)
+    return _atmosphere(frame.img, frame.depth, cond)
 
 
 def _postprocess(img: np.ndarray, conds: list[dict], occluders: np.ndarray, rng: np.random.Generator) -> np.ndarray:
