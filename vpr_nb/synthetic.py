@@ -878,10 +878,12 @@ def _city_cameras(cfg: WorldConfig, rng: np.random.Generator):
     places, street_dir = [], []
     for y in np.arange(by + 1) * pitch:
         t = np.arange(cfg.place_spacing / 2, L_x, cfg.place_spacing)
-        places.append(np.stack([t, np.full_like(t, y)], 1)); street_dir.append(np.zeros(len(t)))
+        places.append(np.stack([t, np.full_like(t, y)], 1))
+        street_dir.append(np.zeros(len(t)))
     for x in np.arange(bx + 1) * pitch:
         t = np.arange(cfg.place_spacing / 2, L_y, cfg.place_spacing)
-        places.append(np.stack([np.full_like(t, x), t], 1)); street_dir.append(np.full(len(t), 90.0))
+        places.append(np.stack([np.full_like(t, x), t], 1))
+        street_dir.append(np.full(len(t), 90.0))
     places, street_dir = np.concatenate(places), np.concatenate(street_dir)
     P = len(places)
     hs = cfg.heading_offset + np.arange(cfg.headings) * 360.0 / cfg.headings
