@@ -26,7 +26,7 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
-from vpr_nb.losses import ce_triplet_loss, dw_triplet_loss, triplet_loss, weighted_triplet_loss
+from vpr_nb.losses import TripletLoss, ce_triplet_loss, dw_triplet_loss, triplet_loss, weighted_triplet_loss
 from vpr_nb.models import build_model
 
 
@@ -110,7 +110,7 @@ def bench_epoch() -> None:
     gen = time.perf_counter() - t0
     seed_everything(0)
     model = build_model("small_cnn", "gem")
-    src = TripletSource(ds.train, "triplet", max_heading_diff=45)
+    src = TripletSource(ds.train, TripletLoss(), max_heading_diff=45)
     hist = train(model, src, ds.val, TrainConfig(epochs=2, lr=0.05), progress=False)
     secs = [e["seconds"] for e in hist.epochs]
     n_img = len(ds.train.q_images) * (2 + src.num_negatives)
