@@ -378,3 +378,23 @@ def test_sqrt_limit_is_the_exact_squared_threshold(threshold):
     assert np.sqrt(t) >= threshold > np.sqrt(np.nextafter(t, 0.0))
     s = np.random.default_rng(0).uniform(0.9, 1.1, 100_000) * threshold ** 2
     np.testing.assert_array_equal(np.sqrt(s) < threshold, s < t)
+
+
+def test_region_labels_of_any_dtype_give_the_same_batches():
+    # region ids come from the labels of the groups' first images (no sort of every image's label)
+    utm, groups, desc, regions = city_worlds()
+    as_int = np.unique(regions, return_inverse=True)[1].reshape(-1)
+    as_float = as_int.astype(float)
+    as_float[as_int == 0] = np.nan            # NaN labels are one region, as in np.unique
+    as_float[as_int == 1] = -5.0              # another sorted position: a NaN sorts last
+    kw = dict(similar_groups=15, num_batches=3, seed=6)
+    a = clique_batches(utm, groups, desc, 10, regions=regions, **kw)
+    np.testing.assert_array_equal(a, clique_batches(utm, groups, desc, 10, regions=as_int, **kw))
+    b = clique_batches(utm, groups, desc, 10, regions=as_float, **kw)
+    check_batch_invariants(b, utm, 25.0, a.shape)
+    for bb in clique_batches(utm, groups, desc, 1, regions=as_float, similar_groups=15, num_batches=10, seed=0):
+        assert len(np.unique(as_int[bb.reshape(-1)])) == 1
+    bad = as_float.copy()
+    bad[np.flatnonzero(as_int == 0)[0]] = 1.0  # one image of a NaN-labelled group labelled otherwise
+    with pytest.raises(ValueError, match="same region"):
+        clique_batches(utm, groups, desc, 5, regions=bad)

@@ -96,6 +96,24 @@ def _sqrt_limit(threshold: float) -> float:
     return float(t)
 
 
+def _check_regions(regions: np.ndarray, groups: np.ndarray, present: np.ndarray, first: np.ndarray) -> None:
+    """Raise ValueError unless every image carries the region label of its group's first image.
+
+    Compared in blocks of images (bounded memory); NaN labels count as one label, as in ``np.unique``.
+    """
+    label = np.empty(int(groups.max()) + 1, dtype=regions.dtype)
+    label[present] = regions[first]
+    nan = regions.dtype.kind in "fc"
+    for s in range(0, len(groups), _CHUNK):
+        a, b = regions[s:s + _CHUNK], label[groups[s:s + _CHUNK]]
+        same = np.asarray(a == b, dtype=bool)
+        if nan:
+            same |= (a != a) & (b != b)
+        if not same.all():
+            raise ValueError("every image of a place group must be in the same region (city): "
+                             "give groups that do not span regions")
+
+
 def _group_index(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(order, starts)``: the images of group ``g`` are ``order[starts[g]:starts[g + 1]]``."""
     order = np.argsort(groups, kind="stable")
@@ -175,13 +193,12 @@ class _CliqueMiner:
         if regions is None:
             greg = np.zeros(len(present), dtype=np.int64)
         else:
-            _, rid = np.unique(regions, return_inverse=True)
-            rid = rid.reshape(-1)
-            greg = rid[self.order[self.starts[present]]]   # region of each group's first image
-            sizes = np.diff(self.starts)[present]
-            if not np.array_equal(rid[self.order], np.repeat(greg, sizes)):
-                raise ValueError("every image of a place group must be in the same region (city): "
-                                 "give groups that do not span regions")
+            regions = np.asarray(regions)
+            first = self.order[self.starts[present]]       # each group's first image
+            _check_regions(regions, groups, present, first)
+            # every region has a group, so the labels of the groups' first images are all the labels:
+            # the same sorted region ids as over all images, without sorting every image's label
+            greg = np.unique(regions[first], return_inverse=True)[1].reshape(-1)
         ro = np.argsort(greg, kind="stable")
         self.present = present[ro]
         counts = np.bincount(greg)
