@@ -150,13 +150,15 @@ def _geo_pairs(db_utm: np.ndarray, q_utm: np.ndarray | None, max_distance: float
     The pairs come in the k-d tree's order (the per-bin sums below are taken in that order).
     """
     db_tree = cKDTree(db_utm)
+    idx = np.int32 if max(len(db_utm), 0 if q_utm is None else len(q_utm)) < 2 ** 31 else np.int64
     if q_utm is None:
         ij = db_tree.query_pairs(max_distance, output_type="ndarray")
-        i, j = ij[:, 0], ij[:, 1]          # int64 column views: no copies
+        i, j = ij[:, 0].astype(idx), ij[:, 1].astype(idx)   # 8 bytes per pair instead of 16
+        del ij
         src = db_utm
     else:
         sparse = cKDTree(q_utm).sparse_distance_matrix(db_tree, max_distance, output_type="ndarray")
-        i, j = sparse["i"].astype(np.int64), sparse["j"].astype(np.int64)
+        i, j = sparse["i"].astype(idx), sparse["j"].astype(idx)
         del sparse
         src = q_utm
     # ``sqrt(((src[i] - db[j]) ** 2).sum(1))`` with the same float operations (the sum over the length-2
@@ -196,52 +198,63 @@ def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: n
 
 
 def _bin_index(geo: np.ndarray | float, bin_width: float, num_bins: int) -> np.ndarray:
-    """Bin of each geographic distance (the last bin is closed on the right)."""
-    t = np.floor(np.asarray(geo) / bin_width)
-    b = t.astype(np.int64)
-    del t
-    return np.minimum(b, num_bins - 1, out=b) if b.ndim else np.minimum(b, num_bins - 1)
+    """Bin of each geographic distance (the last bin is closed on the right), ``floor(geo / w)``
+    capped at ``num_bins - 1``; arrays are done in blocks (no whole-array float temporary)."""
+    geo = np.asarray(geo)
+    if geo.ndim == 0:
+        return np.minimum(np.floor(geo / bin_width).astype(np.int64), num_bins - 1)
+    b = np.empty(geo.shape, dtype=np.int64)
+    for s in range(0, len(geo), _CHUNK_FLOATS):
+        t = geo[s:s + _CHUNK_FLOATS] / bin_width
+        np.floor(t, out=t)
+        b[s:s + _CHUNK_FLOATS] = t
+    return np.minimum(b, num_bins - 1, out=b)
 
 
-def _bin_value_keys(b: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """uint64 keys ``bin << 32 | bits(value)`` whose order is (bin, value) for float32 values >= 0.
+def _bin_value_keys(b: np.ndarray, values: np.ndarray, shift: int = 0) -> np.ndarray:
+    """uint64 keys ``bin << (32 + shift) | bits(value) << shift`` (plus the position in the low
+    ``shift`` bits when ``shift > 0``), whose order is (bin, value[, position]) for float32 values >= 0.
 
     The IEEE-754 bit pattern of a non-negative float32 read as uint32 is monotonic in the value, so
-    sorting the keys sorts by bin, then by value, in one pass over 8-byte integers.
+    sorting the keys sorts by bin, then by value, in one pass over 8-byte integers. Built in blocks,
+    so the only whole-array allocation is the keys themselves.
     """
-    keys = b.astype(np.uint64)
-    keys <<= np.uint64(32)
-    keys |= np.ascontiguousarray(values, dtype=np.float32).view(np.uint32)
+    bits = np.ascontiguousarray(values, dtype=np.float32).view(np.uint32)
+    keys = np.empty(len(b), dtype=np.uint64)
+    for s in range(0, len(b), _CHUNK_FLOATS):
+        k = b[s:s + _CHUNK_FLOATS].astype(np.uint64)
+        k <<= np.uint64(32 + shift)
+        v = bits[s:s + _CHUNK_FLOATS].astype(np.uint64)
+        if shift:
+            v <<= np.uint64(shift)
+            v |= np.arange(s, s + len(v), dtype=np.uint64)
+        k |= v
+        keys[s:s + _CHUNK_FLOATS] = k
     return keys
 
 
 def _values_of_keys(keys: np.ndarray) -> np.ndarray:
-    """The float32 values of sorted :func:`_bin_value_keys` keys."""
-    return (keys & np.uint64(0xFFFFFFFF)).astype(np.uint32).view(np.float32)
+    """The float32 values of sorted :func:`_bin_value_keys` keys (``shift=0``); the keys are overwritten."""
+    keys &= np.uint64(0xFFFFFFFF)
+    return keys.astype(np.uint32).view(np.float32)
 
 
 def _sort_by_bin_then_value(b: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Permutation sorting by bin, then by value (non-negative float32 values), ties by position.
 
     When ``bin | value bits | position`` fits in 64 bits (e.g. 256 bins and 16M pairs) the keys are
-    sorted as values and the permutation is read from their low bits (no argsort); otherwise one
-    argsort of the ``bin | value`` keys.
+    sorted as values and the permutation is read from their low bits in place (no argsort); otherwise
+    one argsort of the ``bin | value`` keys.
     """
     n = len(values)
     ib = max(1, (n - 1).bit_length())
     nb = int(b.max()).bit_length() if n else 0
     if 32 + ib + nb > 64:
         return np.argsort(_bin_value_keys(b, values))
-    keys = b.astype(np.uint64)
-    keys <<= np.uint64(32 + ib)
-    bits = np.ascontiguousarray(values, dtype=np.float32).view(np.uint32).astype(np.uint64)
-    bits <<= np.uint64(ib)
-    keys |= bits
-    del bits
-    keys |= np.arange(n, dtype=np.uint64)
+    keys = _bin_value_keys(b, values, shift=ib)
     keys.sort()
     keys &= np.uint64((1 << ib) - 1)
-    return keys.astype(np.int64)
+    return keys.view(np.int64)
 
 
 def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float]:
@@ -336,6 +349,8 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     edges = bin_width * np.arange(num_bins + 1, dtype=np.float64)
     centers = 0.5 * (edges[:-1] + edges[1:])
     b = _bin_index(geo, bin_width, num_bins)
+    if not keep_pairs:
+        del geo       # only the bins are needed from here on
     count = np.bincount(b, minlength=num_bins)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.bincount(b, weights=desc, minlength=num_bins) / count
@@ -345,12 +360,17 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
         std = np.sqrt(np.bincount(b, weights=dev, minlength=num_bins) / count)
         del dev
 
-    order = None
-    if keep_pairs:   # the pairs themselves are kept: one argsort of (bin, value) keys
+    pair_geo = pair_desc = None
+    if keep_pairs:   # the pairs themselves are kept: sorted (bin, value, position) keys give the permutation
         order = _sort_by_bin_then_value(b, desc)
-        sorted_desc = desc[order]
+        del b
+        sorted_desc = pair_desc = desc[order]
+        del desc
+        pair_geo = geo[order]
+        del geo, order
     elif qs:         # only quantiles: sort the values themselves, no permutation
         keys = _bin_value_keys(b, desc)
+        del b, desc
         keys.sort()
         sorted_desc = _values_of_keys(keys)
         del keys
@@ -366,8 +386,7 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     return GDSProfile(bin_edges=edges, bin_centers=centers, count=count, mean=mean, std=std,
                       quantiles=quant, slope=slope, intercept=intercept, pairs=pairs,
                       fit_range=(lo, hi),
-                      pair_geo=geo[order] if keep_pairs else None,
-                      pair_desc=sorted_desc if keep_pairs else None)
+                      pair_geo=pair_geo, pair_desc=pair_desc)
 
 
 def _check_fit_range(fit_range) -> tuple[float, float]:
