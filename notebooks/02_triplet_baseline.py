@@ -34,10 +34,10 @@
 #
 # This notebook trains from scratch on purpose: it teaches training. The papers never do.
 
-# %% tags=["parameters"]
+# %% tags=["parameters", "grade-deps:ex-02-sq-triplet"]
 PROFILE = "ci"  # "ci": the recipe only (what CI checks); "reproduce": + two ablations (no heading filter, random negatives)
 
-# %%
+# %% tags=["grade-deps:ex-02-sq-triplet"]
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # single-threaded numpy BLAS: much faster for the many
@@ -445,28 +445,41 @@ record("02_triplet_baseline", {
 
 
 # %% [markdown]
-# ## Graded exercise: Eq. (3) with M negatives per query
+# ## Graded exercise: Eq. (3) on squared distances
 #
-# Write `my_triplet_loss(q, p, n, margin)` for `q`, `p` of shape (B, D) and `n` of shape (B, M, D): the
-# sum over all B·M triplets of $\max(0,\, d(q,p) - d(q,n_j) + m)$ with Euclidean $d$, in plain torch
-# (no `vpr_nb`, no `torch.nn.TripletMarginLoss`).
+# The NetVLAD MATLAB code puts the margin on *squared* distances. Write `my_sq_triplet_loss(q, p, n, margin)`
+# for `q`, `p` of shape (B, D) and `n` of shape (B, M, D): the sum over all B·M triplets of
+# $\max(0,\, d(q,p)^2 - d(q,n_j)^2 + m)$ with Euclidean $d$, as a 0-d torch tensor, in plain torch (no
+# `vpr_nb`, no `torch.nn.TripletMarginLoss`). The hidden tests also check what it means for unit vectors,
+# where $d^2 = 2 - 2\cos$.
 
-# %% nbgrader={"grade": false, "grade_id": "ex-02-triplet", "locked": false, "schema_version": 3, "solution": true}
-def my_triplet_loss(q, p, n, margin=0.1):
+# %% nbgrader={"grade": false, "grade_id": "ex-02-sq-triplet", "locked": false, "schema_version": 3, "solution": true}
+def my_sq_triplet_loss(q, p, n, margin=0.1):
     ### BEGIN SOLUTION
-    d_qp = (q - p).norm(dim=-1, keepdim=True)          # (B, 1)
-    d_qn = (q[:, None, :] - n).norm(dim=-1)              # (B, M)
-    return torch.relu(d_qp - d_qn + margin).sum()
+    d2_qp = (q - p).pow(2).sum(-1)                       # (B,)
+    d2_qn = (q[:, None, :] - n).pow(2).sum(-1)           # (B, M)
+    return torch.relu(d2_qp[:, None] - d2_qn + margin).sum()
     ### END SOLUTION
 
 
-# %% nbgrader={"grade": true, "grade_id": "ex-02-triplet-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-g = torch.Generator().manual_seed(1)
-q_t, p_t, n_t = (torch.randn(4, 8, generator=g), torch.randn(4, 8, generator=g), torch.randn(4, 3, 8, generator=g))
-assert torch.allclose(my_triplet_loss(q_t, p_t, n_t, 0.1), triplet_loss(q_t, p_t, n_t, 0.1), atol=1e-5)
+# %% nbgrader={"grade": true, "grade_id": "ex-02-sq-triplet-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+q1, p1, n1 = torch.tensor([[0.0, 0.0]]), torch.tensor([[1.0, 0.0]]), torch.tensor([[[0.0, 1.0], [2.0, 0.0]]])
+got = my_sq_triplet_loss(q1, p1, n1, 0.5)
+assert torch.is_tensor(got) and got.dim() == 0, f"expected a 0-d torch tensor, got {type(got).__name__} {getattr(got, 'shape', '')}"
+assert abs(got.item() - 0.5) < 1e-6, (f"one query, positive at d^2 = 1, negatives at d^2 = 1 and 4, margin 0.5: "
+                                      f"expected (1 - 1 + 0.5) + 0 = 0.5, got {got.item():.6f}")
 ### BEGIN HIDDEN TESTS
-assert torch.allclose(my_triplet_loss(q_t, p_t, n_t, 2.0), triplet_loss(q_t, p_t, n_t, 2.0), atol=1e-5)
-assert my_triplet_loss(q_t, q_t, q_t[:, None, :] + 10, 0.1).item() == 0.0
+from vpr_nb.assignments import assert_own_code
+assert_own_code(my_sq_triplet_loss, forbid_names=("TripletMarginLoss", "triplet_margin_loss"))
+g = torch.Generator().manual_seed(1)
+q_b, p_b, n_b = 3 * torch.randn(5, 6, generator=g), 3 * torch.randn(5, 6, generator=g), 3 * torch.randn(5, 2, 6, generator=g)
+ref = torch.relu(((q_b - p_b) ** 2).sum(1)[:, None] - ((q_b[:, None] - n_b) ** 2).sum(2) + 2.0).sum().item()
+got = my_sq_triplet_loss(q_b, p_b, n_b, 2.0).item()
+assert abs(got - ref) < 1e-4 * max(1.0, ref), f"5 queries x 2 negatives, margin 2 (not unit vectors): expected {ref:.4f}, got {got:.4f}"
+q_u, p_u, n_u = (torch.nn.functional.normalize(t, dim=-1) for t in (q_b, p_b, n_b))
+cos_form = torch.relu(2 * (q_u[:, None] * n_u).sum(-1) - 2 * (q_u * p_u).sum(-1)[:, None] + 0.1).sum().item()
+got = my_sq_triplet_loss(q_u, p_u, n_u, 0.1).item()
+assert abs(got - cos_form) < 1e-5, f"unit vectors: expected the cosine form sum max(0, 2 cos(q,n) - 2 cos(q,p) + m) = {cos_form:.6f}, got {got:.6f}"
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -476,9 +489,9 @@ assert my_triplet_loss(q_t, q_t, q_t[:, None, :] + 10, 0.1).item() == 0.0
 #    `num_candidates=M`. How many epochs does each need to reach the recipe's validation R@1?
 # 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on plain
 #    L2). What fraction of mined triplets violates the margin at the end of training in each case?
-# 3. **Squared distances.** The NetVLAD MATLAB code puts the margin on *squared* distances. Write that
-#    variant of Eq. (3) and show that for unit vectors $d^2 = 2 - 2\cos$, so it is a margin on cosine
-#    similarities.
+# 3. **Squared distances, trained.** Train the recipe with the graded exercise's loss (a `loss` object with
+#    the same signature as `triplet_loss`). Which margin on squared distances makes it select the same
+#    violating triplets as $m = 0.1$ on distances, for a positive at $d(q, p) = 0.5$?
 # 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is best
 #    here? (Notebook 03 measures it with several seeds.)
 # 5. **Semi-hard negatives.** FaceNet trains on negatives that are farther than the positive but within

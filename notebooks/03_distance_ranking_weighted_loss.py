@@ -34,10 +34,10 @@
 #   learning rate and at an **equal effective step** (a **Table II analog**), and max / mean pooling with
 #   T-Loss vs DW-T-Loss (a **Table III analog**), over 5 paired seeds, next to the paper's numbers.
 
-# %% tags=["parameters"]
+# %% tags=["parameters", "grade-deps:ex-03-ce-tau"]
 PROFILE = "ci"  # "ci": 1 seed, 1 short epoch per row (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
 
-# %%
+# %% tags=["grade-deps:ex-03-ce-tau"]
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # single-threaded numpy BLAS: much faster for the many
@@ -593,27 +593,38 @@ record("03_distance_ranking_weighted_loss", {
 
 
 # %% [markdown]
-# ## Graded exercise: the cross-entropy form, Eq. (8)
+# ## Graded exercise: a temperature for the cross-entropy form
 #
-# Write `my_ce_loss(d_p, d_n)` for tensors of query-positive and query-negative distances (same shape):
-# the sum of $-\log \frac{e^{d_n}}{e^{d_p} + e^{d_n}}$ (Eqs. (5)–(8)), numerically stable for large
-# distances (hint: it equals $\operatorname{softplus}(d_p - d_n)$).
+# Eqs. (5)–(8) turn the two distances into probabilities with a softmax at temperature 1. Write
+# `my_ce_loss_tau(d_p, d_n, tau)` for tensors of query-positive and query-negative distances (same shape)
+# and a temperature $\tau > 0$: the sum of $-\log \hat d_n$ with
+# $\hat d_n = \frac{e^{d_n/\tau}}{e^{d_p/\tau} + e^{d_n/\tau}}$, as a 0-d tensor, in plain torch (no `vpr_nb`),
+# finite and accurate for large $|d_p - d_n| / \tau$ (the hidden tests use $\tau = 0.01$ and distances of 1000).
 
-# %% nbgrader={"grade": false, "grade_id": "ex-03-ce", "locked": false, "schema_version": 3, "solution": true}
-def my_ce_loss(d_p, d_n):
+# %% nbgrader={"grade": false, "grade_id": "ex-03-ce-tau", "locked": false, "schema_version": 3, "solution": true}
+def my_ce_loss_tau(d_p, d_n, tau=1.0):
     ### BEGIN SOLUTION
-    return torch.nn.functional.softplus(d_p - d_n).sum()
+    return torch.nn.functional.softplus((d_p - d_n) / tau).sum()
     ### END SOLUTION
 
 
-# %% nbgrader={"grade": true, "grade_id": "ex-03-ce-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-g = torch.Generator().manual_seed(3)
-q_t, p_t, n_t = torch.randn(5, 6, generator=g), torch.randn(5, 6, generator=g), torch.randn(5, 6, generator=g)
-d_p, d_n = (q_t - p_t).norm(dim=1), (q_t - n_t).norm(dim=1)
-assert torch.allclose(my_ce_loss(d_p, d_n), ce_triplet_loss(q_t, p_t, n_t), atol=1e-5)
+# %% nbgrader={"grade": true, "grade_id": "ex-03-ce-tau-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+got = my_ce_loss_tau(torch.tensor([0.7, 0.2]), torch.tensor([0.7, 0.2]), 0.5)
+assert torch.is_tensor(got) and got.dim() == 0, f"expected a 0-d torch tensor, got {type(got).__name__} {getattr(got, 'shape', '')}"
+assert abs(got.item() - 2 * np.log(2)) < 1e-6, (f"d_p == d_n gives d_hat_n = 1/2 at any tau: expected 2 log 2 = "
+                                                 f"{2 * np.log(2):.6f} for two triplets, got {got.item():.6f}")
 ### BEGIN HIDDEN TESTS
-big = my_ce_loss(torch.tensor([1000.0]), torch.tensor([0.0]))
-assert torch.isfinite(big) and abs(big.item() - 1000.0) < 1e-3
+from vpr_nb.assignments import assert_own_code
+assert_own_code(my_ce_loss_tau)
+g = torch.Generator().manual_seed(3)
+d_p, d_n = torch.rand(6, 4, generator=g), torch.rand(6, 4, generator=g)
+for tau in (1.0, 0.3, 5.0):
+    ref = -torch.log_softmax(torch.stack([d_p, d_n], -1) / tau, -1)[..., 1].sum().item()
+    got = my_ce_loss_tau(d_p, d_n, tau).item()
+    assert abs(got - ref) < 1e-4, f"random distances (6 x 4), tau = {tau}: expected {ref:.5f}, got {got:.5f}"
+big = my_ce_loss_tau(torch.tensor([1000.0, 0.0]), torch.tensor([0.0, 1000.0]), 0.01)
+assert torch.isfinite(big) and abs(big.item() - 1e5) < 1e-2, (f"d_p - d_n = 1000 and -1000 at tau = 0.01: expected "
+                                                             f"1e5 + ~0 (finite), got {big.item()}")
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -621,7 +632,7 @@ assert torch.isfinite(big) and abs(big.item() - 1000.0) < 1e-3
 #
 # 1. **σ that ranks.** Set `SIGMA = 25` (the evaluation radius) and rerun the gradient measurement and
 #    one seed of the tables. Does the weight now do more than rescale the loss?
-# 2. **A temperature for Eq. (5).** Replace $d$ by $d / \tau$ in the CE loss (τ = 0.1) and retrain CE-Loss
+# 2. **A temperature for Eq. (5), trained.** Retrain CE-Loss with the graded exercise's temperature (τ = 0.1)
 #    at its equal step. Does it now behave like T-Loss? Why would it (look at the softmax plot)?
 # 3. **Negative weights.** With σ = 8 m, a positive at 9 m gets $w < 0$. What does a negative weight do
 #    to a violated triplet? Should Eq. (4) be clipped at 0?

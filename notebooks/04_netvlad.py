@@ -34,10 +34,10 @@
 #   worlds) with **GeM pooling** (Eq. G below) vs NetVLAD, with the same triplet pipeline and budget, on the
 #   tiny `city` world: one seed live, five seeds in the committed reproduce profile.
 
-# %% tags=["parameters"]
+# %% tags=["parameters", "grade-deps:ex-04-soft-share"]
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
 
-# %%
+# %% tags=["grade-deps:ex-04-soft-share"]
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # single-threaded numpy BLAS: much faster for the many
@@ -536,31 +536,44 @@ record("04_netvlad", {
 
 
 # %% [markdown]
-# ## Graded exercise: $\alpha$ by hand
+# ## Graded exercise: which descriptors does $\alpha$ leave soft?
 #
-# Write `alpha_from_clusters(descs, cents)`: Eq. (6) for L2-normalised descriptors `descs` $[N, D]$ and
-# centroids `cents` $[K, D]$ (numpy arrays; the centroids are *not* normalised), returning a Python float.
+# With `vladv2=False` the layer gives a local descriptor $x_i$ the soft weight $\propto e^{\alpha \cos(x_i, c_k)}$
+# for cluster $k$ (centroid directions, Eq. 3 with the init above). Eq. (6) makes the best/second-best weight
+# ratio 100 only *on average* (of its log). Write `weak_assignment_share(descs, cents, alpha, ratio=100.0)`:
+# the fraction of the L2-normalised descriptors `descs` $[N, D]$ (numpy; centroids `cents` $[K, D]$ are *not*
+# normalised) whose best weight is *less* than `ratio` times their second-best weight, as a Python float, in
+# numpy (no `vpr_nb`).
 
-# %% nbgrader={"grade": false, "grade_id": "ex-04-alpha", "locked": false, "schema_version": 3, "solution": true}
-def alpha_from_clusters(descs, cents):
+# %% nbgrader={"grade": false, "grade_id": "ex-04-soft-share", "locked": false, "schema_version": 3, "solution": true}
+def weak_assignment_share(descs, cents, alpha, ratio=100.0):
     ### BEGIN SOLUTION
     cos = descs @ (cents / np.linalg.norm(cents, axis=1, keepdims=True)).T
     top2 = np.sort(cos, axis=1)[:, -2:]
-    return float(-np.log(0.01) / (top2[:, 1] - top2[:, 0]).mean())
+    return float(np.mean(alpha * (top2[:, 1] - top2[:, 0]) < np.log(ratio)))
     ### END SOLUTION
 
 
-# %% nbgrader={"grade": true, "grade_id": "ex-04-alpha-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-assert isinstance(alpha_from_clusters(descs, cents), float)
-assert np.isclose(alpha_from_clusters(descs, cents), netvlad_model.aggregator.alpha, rtol=1e-4)
+# %% nbgrader={"grade": true, "grade_id": "ex-04-soft-share-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+toy_d, toy_k = np.array([[1.0, 0.0], [0.6, 0.8]]), np.array([[2.0, 0.0], [0.0, 3.0]])   # cosine gaps 1.0 and 0.2
+got = weak_assignment_share(toy_d, toy_k, 10.0)
+assert isinstance(got, float), f"expected a Python float, got {type(got).__name__}"
+assert got == 0.5, (f"alpha = 10: weight ratios e^10 (>= 100) and e^2 (< 100), so expected a share of 0.5, got {got}")
 ### BEGIN HIDDEN TESTS
-_layer = NetVLAD(num_clusters=3, dim=4)
+from vpr_nb.assignments import assert_own_code
+assert_own_code(weak_assignment_share)
 _rng = np.random.default_rng(1)
-_d = _rng.standard_normal((50, 4))
+_d = _rng.standard_normal((400, 4))
 _d /= np.linalg.norm(_d, axis=1, keepdims=True)
-_c = 3.0 * _rng.standard_normal((3, 4))
-_layer.init_from_clusters(_c, _d)
-assert np.isclose(alpha_from_clusters(_d, _c), _layer.alpha, rtol=1e-6)
+_c = 3.0 * _rng.standard_normal((5, 4))
+_w = torch.softmax(torch.as_tensor(_d @ (_c / np.linalg.norm(_c, axis=1, keepdims=True)).T) * 25.0, dim=1).numpy()
+_top = np.sort(_w, axis=1)[:, -2:]
+for _ratio in (100.0, 10.0):
+    ref = float(np.mean(_top[:, 1] < _ratio * _top[:, 0]))
+    got = weak_assignment_share(_d, _c, 25.0, _ratio)
+    assert abs(got - ref) < 1e-9, f"400 random descriptors, 5 centroids, alpha 25, ratio {_ratio}: expected {ref:.4f}, got {got}"
+got = weak_assignment_share(_d, _c, 0.0)
+assert got == 1.0, f"alpha = 0 makes every assignment uniform: expected a share of 1.0, got {got}"
 ### END HIDDEN TESTS
 
 # %% [markdown]

@@ -33,10 +33,10 @@
 # * measure whether the trained Sinkhorn plan is **non-uniform** (distinct cluster vectors, low
 #   per-feature entropy) and what makes SALAD start collapsed on this backbone.
 
-# %% tags=["parameters"]
+# %% tags=["parameters", "grade-deps:ex-05-cluster-means"]
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
 
-# %%
+# %% tags=["grade-deps:ex-05-cluster-means"]
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # single-threaded numpy BLAS: much faster for the many
@@ -606,29 +606,43 @@ record("05_salad", {
 
 
 # %% [markdown]
-# ## Graded exercise: Eq. (4) with intra-normalisation
+# ## Graded exercise: Eq. (4) without intra-normalisation
 #
-# Write `cluster_vectors(f, p)`: for projected features `f` $[l, n]$ and a plan `p` $[m, n]$ (torch tensors,
-# dustbin row already removed), return the $[l, m]$ matrix whose column $k$ is $V_{\cdot k} / \lVert V_{\cdot k} \rVert$.
+# An ablation of the derivation above: instead of normalising each cluster column $V_{\cdot k}$, take the
+# **plan-weighted mean** of the features, which keeps each cluster's scale. Write `cluster_means(f, p)`: for
+# projected features `f` $[l, n]$ and a plan `p` $[m, n]$ (torch tensors, dustbin row already removed), the
+# $[l, m]$ matrix whose column $k$ is $\sum_i p_{ki} f_{\cdot i} / \sum_i p_{ki}$, in plain torch (no `vpr_nb`).
 
-# %% nbgrader={"grade": false, "grade_id": "ex-05-clusters", "locked": false, "schema_version": 3, "solution": true}
-def cluster_vectors(f, p):
+# %% nbgrader={"grade": false, "grade_id": "ex-05-cluster-means", "locked": false, "schema_version": 3, "solution": true}
+def cluster_means(f, p):
     ### BEGIN SOLUTION
-    return F.normalize(f @ p.T, dim=0)
+    return (f @ p.T) / p.sum(dim=1)
     ### END SOLUTION
 
 
-# %% nbgrader={"grade": true, "grade_id": "ex-05-clusters-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-_gen = torch.Generator().manual_seed(3)
-_f, _s, _t = torch.randn(6, 20, generator=_gen), torch.randn(4, 20, generator=_gen), torch.randn(5, generator=_gen)
-_p = sinkhorn(_s[None], 0.5, 3)[0].exp()[:-1]
-_v = cluster_vectors(_f, _p)
-assert _v.shape == (6, 4)
-_desc = F.normalize(torch.cat([F.normalize(_t, dim=0), _v.flatten()]), dim=0)
-assert torch.allclose(_desc, salad_aggregate(_f[None], _s[None], _t[None], 0.5)[0], atol=1e-5)
+# %% nbgrader={"grade": true, "grade_id": "ex-05-cluster-means-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+_f = torch.arange(12.0).reshape(3, 4)                          # l = 3 channels, n = 4 features
+_p = torch.tensor([[0.0, 2.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.5]])   # cluster 0: feature 1; cluster 1: mean of 0 and 3
+_want = torch.stack([_f[:, 1], (_f[:, 0] + _f[:, 3]) / 2], dim=1)
+_v = cluster_means(_f, _p)
+assert tuple(_v.shape) == (3, 2), f"expected shape (l, m) = (3, 2), got {tuple(_v.shape)}"
+assert torch.allclose(_v, _want), f"toy plan: expected columns {_want.T.tolist()}, got {_v.T.tolist()}"
 ### BEGIN HIDDEN TESTS
-assert torch.allclose(cluster_vectors(_f, _p).norm(dim=0), torch.ones(4), atol=1e-5)
-assert torch.allclose(cluster_vectors(2 * _f, _p), _v, atol=1e-5)
+from vpr_nb.assignments import assert_own_code
+assert_own_code(cluster_means)
+_gen = torch.Generator().manual_seed(3)
+_f, _s = torch.randn(6, 20, generator=_gen), torch.randn(4, 20, generator=_gen)
+_p = sinkhorn(_s[None], 0.5, 3)[0].exp()[:-1]
+_ref = torch.stack([(_p[k][None] * _f).sum(1) / _p[k].sum() for k in range(4)], dim=1)
+_v = cluster_means(_f, _p)
+assert torch.allclose(_v, _ref, atol=1e-5), f"a 3-iteration Sinkhorn plan: expected {_ref[:, 0].tolist()} in column 0, got {_v[:, 0].tolist()}"
+assert torch.allclose(cluster_means(2 * _f, _p), 2 * _ref, atol=1e-5), "scaling the features by 2 must scale the means by 2 (no normalisation)"
+assert torch.allclose(cluster_means(_f, 3 * _p), _ref, atol=1e-5), "scaling the plan by 3 must not change the means"
+_t = torch.randn(5, generator=_gen)
+_desc = F.normalize(torch.cat([F.normalize(_t, dim=0), F.normalize(_v, dim=0).flatten()]), dim=0)
+_lib = salad_aggregate(_f[None], _s[None], _t[None], 0.5)[0]
+assert torch.allclose(_desc, _lib, atol=1e-5), (f"normalising each column of the means must give SALAD's descriptor, Eqs. (4)-(5): "
+                                               f"max difference {(_desc - _lib).abs().max().item():.2e}")
 ### END HIDDEN TESTS
 
 # %% [markdown]

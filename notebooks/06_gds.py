@@ -35,10 +35,10 @@
 #   negatives start 10 m away, and with the Multi-Similarity loss over 25 m places;
 # * pick a query with a widget and look at its top-k with their true distances.
 
-# %% tags=["parameters"]
+# %% tags=["parameters", "grade-deps:ex-06-misorder-empirical"]
 PROFILE = "ci"  # "ci": 1 fine-tuning seed, short budget (what CI checks); "reproduce": 5 seeds, full budget
 
-# %%
+# %% tags=["grade-deps:ex-06-misorder-empirical"]
 import time
 
 import matplotlib.pyplot as plt
@@ -438,25 +438,40 @@ record("06_gds", {
 
 
 # %% [markdown]
-# ## Graded exercise: Eq. (3) by hand
+# ## Graded exercise: the empirical mis-ordering probability
 #
-# Write `misorder_gaussian(mu1, sd1, mu2, sd2)`, the Gaussian mis-ordering probability of Eq. (3) for two
-# bins with means `mu1, mu2` and standard deviations `sd1, sd2` (use `scipy.special.ndtr` for $\Phi$).
+# Eq. (3) models each bin as a Gaussian. Without that assumption, the mis-ordering probability of two bins is
+# the fraction of sample pairs $(x_1, x_2)$, $x_1$ from the nearer bin and $x_2$ from the farther one, with
+# $x_2 < x_1$, ties counting one half. Write `misorder_empirical(x1, x2)` for two 1-D numpy arrays of
+# descriptor distances, returning a Python float, in numpy (no `vpr_nb`; the hidden tests use a few
+# thousand samples per bin, so an all-pairs matrix is fine).
 
-# %% nbgrader={"grade": false, "grade_id": "ex-06-misorder", "locked": false, "schema_version": 3, "solution": true}
-def misorder_gaussian(mu1, sd1, mu2, sd2):
+# %% nbgrader={"grade": false, "grade_id": "ex-06-misorder-empirical", "locked": false, "schema_version": 3, "solution": true}
+def misorder_empirical(x1, x2):
     ### BEGIN SOLUTION
-    return float(ndtr((mu1 - mu2) / np.sqrt(sd1 ** 2 + sd2 ** 2)))
+    x1, x2 = np.asarray(x1, float)[:, None], np.asarray(x2, float)[None, :]
+    return float(np.mean((x2 < x1) + 0.5 * (x2 == x1)))
     ### END SOLUTION
 
 
-# %% nbgrader={"grade": true, "grade_id": "ex-06-misorder-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-prof_t = profiles[RECIPES["triplet"]]
-assert abs(misorder_gaussian(0.5, 0.1, 0.5, 0.1) - 0.5) < 1e-9
-assert abs(misorder_gaussian(prof_t.mean[0], prof_t.std[0], prof_t.mean[2], prof_t.std[2])
-           - misordering_probability(prof_t, 0.0, 10.0)) < 1e-6
+# %% nbgrader={"grade": true, "grade_id": "ex-06-misorder-empirical-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+got = misorder_empirical(np.array([1.0, 3.0]), np.array([2.0, 3.0]))
+assert isinstance(got, float), f"expected a Python float, got {type(got).__name__}"
+assert abs(got - 0.375) < 1e-12, (f"x1 = [1, 3], x2 = [2, 3]: pairs (1,2) no, (1,3) no, (3,2) yes, (3,3) a tie: "
+                                  f"expected (0 + 0 + 1 + 0.5) / 4 = 0.375, got {got}")
 ### BEGIN HIDDEN TESTS
-assert misorder_gaussian(1.0, 0.1, 0.0, 0.1) > 0.99 and misorder_gaussian(0.0, 0.1, 1.0, 0.1) < 0.01
+from vpr_nb.assignments import assert_own_code
+assert_own_code(misorder_empirical)
+_rng = np.random.default_rng(0)
+_a, _b = _rng.normal(0.5, 0.1, 2000), _rng.normal(0.6, 0.1, 1500)
+_ref = float(np.mean(_b[None, :] < _a[:, None]))
+_got = misorder_empirical(_a, _b)
+assert abs(_got - _ref) < 1e-12, f"2000 x 1500 Gaussian samples: expected {_ref:.6f}, got {_got}"
+_gauss = float(ndtr((0.5 - 0.6) / np.sqrt(0.02)))
+assert abs(_got - _gauss) < 0.02, f"close to Eq. (3) for Gaussian bins: expected about {_gauss:.3f}, got {_got:.3f}"
+_got = misorder_empirical(np.round(_a, 1), np.round(_b, 1))
+_ref = float(np.mean((np.round(_b, 1)[None] < np.round(_a, 1)[:, None]) + 0.5 * (np.round(_b, 1)[None] == np.round(_a, 1)[:, None])))
+assert abs(_got - _ref) < 1e-12, f"samples rounded to 0.1 (many ties, each counting 1/2): expected {_ref:.6f}, got {_got}"
 ### END HIDDEN TESTS
 
 # %% [markdown]

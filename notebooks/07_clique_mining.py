@@ -32,10 +32,10 @@
 #   failures are near misses; and compare the samplers first by the **mis-ordering probability** at small
 #   distances and the top-k order (notebook 06), then by Recall@1, on 5 paired seeds.
 
-# %% tags=["parameters"]
+# %% tags=["parameters", "grade-deps:ex-07-close-pairs"]
 PROFILE = "ci"  # "ci": 1 seed, short budget (what CI checks); "reproduce": 5 paired seeds, full budget
 
-# %%
+# %% tags=["grade-deps:ex-07-close-pairs"]
 import time
 
 import matplotlib.pyplot as plt
@@ -494,26 +494,42 @@ record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "epo
 
 
 # %% [markdown]
-# ## Graded exercise: the hardest geographic negative of a batch
+# ## Graded exercise: how far from a clique batch is a batch?
 #
-# Write `min_other_place_distance(batch, utm)`: the smallest geographic distance between two images that
-# belong to *different* places of one batch `(P, K)`. For a clique batch it must be $\ge \tau$.
+# A diagnosis of the invariant "different places $\ge \tau$ apart". Write `close_pairs(batch, utm, tau)`: for a
+# batch `(P, K)` of image indices (one row per place) and image positions `utm` $[N, 2]$, the number of
+# unordered pairs of images of *different* places that lie less than `tau` metres apart, as a Python int, in
+# numpy (no `vpr_nb`). A clique batch has none.
 
-# %% nbgrader={"grade": false, "grade_id": "ex-07-hardest", "locked": false, "schema_version": 3, "solution": true}
-def min_other_place_distance(batch, utm):
+# %% nbgrader={"grade": false, "grade_id": "ex-07-close-pairs", "locked": false, "schema_version": 3, "solution": true}
+def close_pairs(batch, utm, tau):
     ### BEGIN SOLUTION
-    pts = utm[batch]                                                   # (P, K, 2)
-    dist = np.linalg.norm(pts[:, None, :, None] - pts[None, :, None, :], axis=-1)   # (P, P, K, K)
-    return float(dist[~np.eye(len(batch), dtype=bool)].min())
+    batch = np.asarray(batch)
+    pts = np.asarray(utm)[batch]                                               # (P, K, 2)
+    d = np.linalg.norm(pts[:, None, :, None] - pts[None, :, None, :], axis=-1)   # (P, P, K, K)
+    upper = np.triu(np.ones((len(batch), len(batch)), dtype=bool), k=1)         # place pairs p1 < p2
+    return int((d[upper] < tau).sum())
     ### END SOLUTION
 
 
-# %% nbgrader={"grade": true, "grade_id": "ex-07-hardest-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-assert min_other_place_distance(cb[0], d["utm"]) >= THRESHOLD["city"]
-assert abs(min_other_place_distance(rb[0], d["utm"]) - nearest_other_place(rb[:1], d["utm"]).min()) < 1e-9
+# %% nbgrader={"grade": true, "grade_id": "ex-07-close-pairs-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+toy = np.array([[0.0, 0.0], [1.0, 0.0], [30.0, 0.0], [31.0, 0.0], [10.0, 0.0], [50.0, 0.0]])
+got = close_pairs(np.array([[0, 1], [2, 3]]), toy, 25.0)
+assert isinstance(got, (int, np.integer)) and got == 0, f"places at 0-1 m and 30-31 m, tau 25: expected 0 close pairs, got {got!r}"
+got = close_pairs(np.array([[0, 1], [4, 5]]), toy, 25.0)
+assert got == 2, f"places {{0 m, 1 m}} and {{10 m, 50 m}}, tau 25: expected 2 close pairs (0-10 m, 1-10 m), got {got!r}"
 ### BEGIN HIDDEN TESTS
-toy = np.array([[0.0, 0.0], [1.0, 0.0], [30.0, 0.0], [31.0, 0.0]])
-assert abs(min_other_place_distance(np.array([[0, 1], [2, 3]]), toy) - 29.0) < 1e-9
+from vpr_nb.assignments import assert_own_code
+assert_own_code(close_pairs)
+_rng = np.random.default_rng(2)
+_utm = _rng.uniform(0, 100, (200, 2))
+_b = _rng.permutation(200)[:24].reshape(6, 4)
+_ref = sum(int(np.linalg.norm(_utm[i] - _utm[j]) < 20.0) for a in range(6) for c in range(a + 1, 6)
+           for i in _b[a] for j in _b[c])
+got = close_pairs(_b, _utm, 20.0)
+assert got == _ref, f"6 random places x 4 images in a 100 m square, tau 20: expected {_ref} close pairs, got {got!r}"
+got = close_pairs(_b[:1], _utm, 1e9)
+assert got == 0, f"a batch of one place has no pair of different places: expected 0, got {got!r}"
 ### END HIDDEN TESTS
 
 # %% [markdown]

@@ -27,15 +27,16 @@
 #   runs it longer) and read its `results.json`;
 # * read the published tables of DW-T-Loss (Xiong et al.), DINOv2-SALAD (Izquierdo & Civera, CVPR 2024)
 #   and SALAD + CliqueMining (ECCV 2024) beside the synthetic results of notebooks 02–07 and any
-#   real-data run you have made;
+#   runs of your own (listed when you ask for them);
 # * list the implementation details that move these numbers by several points (margins, thresholds,
 #   query subsets, Nordland protocol) and which choice each preset makes.
 
-# %% tags=["parameters"]
+# %% tags=["parameters", "grade-deps:ex-08-overrides-between"]
 PROFILE = "ci"            # "ci": 2 epochs of the synthetic preset; "reproduce": the preset's full 14 epochs
-RESULTS_DIR = "../results"  # where python -m vpr_nb.train --out results/<name> runs on real data are looked for
+RUNS_DIR = None           # None: list no runs of yours, so the stored output never depends on the working tree;
+                         # "../results" lists the runs of python -m vpr_nb.train --out results/<name>
 
-# %%
+# %% tags=["grade-deps:ex-08-overrides-between"]
 import json
 import os
 import tempfile
@@ -191,23 +192,34 @@ def synthetic_results():
     return {r["notebook"]: r["results"] for r in rows}
 
 
-def real_results(folder):
-    # results.json files written by python -m vpr_nb.train --out results/<name>
-    return {p.parent.name: json.loads(p.read_text()) for p in sorted(Path(folder).glob("*/results.json"))}
+def own_runs(folder):
+    # runs written by python -m vpr_nb.train --out <folder>/<name>, labelled by the data format of their config.json
+    runs = {}
+    for p in sorted(Path(folder).glob("*/results.json")):
+        cfg_file = p.parent / "config.json"
+        fmt = json.loads(cfg_file.read_text())["data"]["format"] if cfg_file.is_file() else "unknown format"
+        runs[p.parent.name] = (fmt, json.loads(p.read_text()))
+    return runs
 
 
-ours, real = synthetic_results(), real_results(RESULTS_DIR)
+ours = synthetic_results()
 if ours:
     for nb, res in ours.items():
         print(f"{nb}: {json.dumps(res)[:300]}")
 else:
     print("Synthetic results of notebooks 01-07: shown when this notebook runs inside `make reproduce`,")
     print("which executes the sequence in order and writes them to reports/results.md as well.")
-if real:
-    for name, res in real.items():
-        print(f"real-data run {name}: test Recall@N {res['test']}")
+print(f"synthetic run of this notebook (synthetic-city-triplet, {epochs} epochs): test Recall@N",
+      {n: round(v, 3) for n, v in results["test"].items()})
+if RUNS_DIR is None:
+    print('Runs of yours are listed when you set RUNS_DIR = "../results" in the parameters cell '
+          "(left out of the stored output, which must not depend on your working tree).")
 else:
-    print(f"No real-data runs under {RESULTS_DIR}/ yet: run one of the commands above with --out results/<name>.")
+    for name, (fmt, res) in own_runs(RUNS_DIR).items():
+        kind = "synthetic run" if fmt == "synthetic" else f"real-data run ({fmt})"
+        print(f"{kind} {name}: test Recall@N {res['test']}")
+    if not own_runs(RUNS_DIR):
+        print(f"No runs under {RUNS_DIR}/ yet: run one of the commands above with --out results/<name>.")
 
 # %%
 fig, ax = plt.subplots(figsize=(7, 3))
@@ -239,43 +251,53 @@ record("08_reproduction", {"synthetic-city-triplet (epochs=%d)" % epochs: {f"R@{
 
 
 # %% [markdown]
-# ## Graded exercise: an override by hand
+# ## Graded exercise: the overrides between two configs
 #
-# Write `apply_override(cfg, item)` that returns a *new* config (the input unchanged) with one
-# `"section.key=value"` applied, the value parsed as JSON when it parses (`"1e-3"` → `0.001`,
-# `"[1, 5]"` → a list) and kept as a string otherwise (`"triplet"`).
+# The inverse of an override: write `overrides_between(base, target)` for two resolved configs (dicts of
+# sections, each a dict of values, as `resolve_config` returns them; the `"preset"` entry is not a section):
+# the sorted list of `"section.key=value"` strings, one per value that differs, such that
+# `resolve_config(preset, overrides_between(base, target)) == target` when `base` is `preset`'s config. Write
+# strings as they are and every other value as JSON (`json.dumps`). Plain Python (no `vpr_nb`).
 
-# %% nbgrader={"grade": false, "grade_id": "ex-08-override", "locked": false, "schema_version": 3, "solution": true}
-def apply_override(cfg, item):
+# %% nbgrader={"grade": false, "grade_id": "ex-08-overrides-between", "locked": false, "schema_version": 3, "solution": true}
+def overrides_between(base, target):
     ### BEGIN SOLUTION
-    key, text = item.split("=", 1)
-    section, name = key.split(".", 1)
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError:
-        value = text
-    new = copy.deepcopy(cfg)
-    new[section][name] = value
-    return new
+    out = []
+    for section, values in target.items():
+        if not isinstance(values, dict):
+            continue
+        for key, value in values.items():
+            if base[section][key] != value:
+                out.append(f"{section}.{key}={value if isinstance(value, str) else json.dumps(value)}")
+    return sorted(out)
     ### END SOLUTION
 
 
-# %% nbgrader={"grade": true, "grade_id": "ex-08-override-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-base = resolve_config("dwt-pitts30k")
-assert apply_override(base, "source.loss=triplet") == resolve_config("dwt-pitts30k", ["source.loss=triplet"])
-assert base == resolve_config("dwt-pitts30k"), "the input config must not change"
+# %% nbgrader={"grade": true, "grade_id": "ex-08-overrides-between-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+toy_base = {"preset": "toy", "train": {"lr": 0.1, "epochs": 3}, "source": {"loss": "triplet"}}
+toy_target = {"preset": "toy", "train": {"lr": 0.001, "epochs": 3}, "source": {"loss": "dw-triplet"}}
+got = overrides_between(toy_base, toy_target)
+assert got == ["source.loss=dw-triplet", "train.lr=0.001"], f"expected ['source.loss=dw-triplet', 'train.lr=0.001'], got {got!r}"
+assert overrides_between(toy_base, toy_base) == [], f"equal configs: expected [], got {overrides_between(toy_base, toy_base)!r}"
 ### BEGIN HIDDEN TESTS
-assert apply_override(base, "train.ns=[1, 5]")["train"]["ns"] == [1, 5]
-assert apply_override(base, "train.lr=1e-3") == resolve_config("dwt-pitts30k", ["train.lr=1e-3"])
+from vpr_nb.assignments import assert_own_code
+assert_own_code(overrides_between)
+base = resolve_config("dwt-pitts30k")
+for sets in (["source.loss=triplet"], ["train.lr=1e-3", "eval.ns=[1, 5]"], ["train.epochs=2", "model.aggregator=gem"]):
+    target = resolve_config("dwt-pitts30k", sets)
+    got = overrides_between(base, target)
+    assert resolve_config("dwt-pitts30k", got) == target, f"--set {sets}: expected overrides that rebuild it, got {got!r}"
+    assert len(got) == len(sets), f"--set {sets}: expected {len(sets)} overrides (one per changed value), got {got!r}"
+assert base == resolve_config("dwt-pitts30k"), "the input config must not change"
 ### END HIDDEN TESTS
 
 # %% [markdown]
 # ## Exercises
 #
 # 1. Run `python -m vpr_nb.train --preset synthetic-city-dw --out results/city-dw` and
-#    `--preset synthetic-city-triplet --out results/city-t`, then re-run this notebook: both runs appear
-#    in the real-data table (the folder is the same). Which loss wins, and is the gap bigger than the
-#    seed spread of notebook 03?
+#    `--preset synthetic-city-triplet --out results/city-t`, then set `RUNS_DIR = "../results"` in the
+#    parameters cell and re-run this notebook: both appear as synthetic runs. Which loss wins, and is the gap
+#    bigger than the seed spread of notebook 03?
 # 2. Evaluate your run on the gmberton-format fixture:
 #    `python -m vpr_nb.evaluate --run results/city-t --set data.format=gmberton --set data.root=data_fixtures/gmberton/pitts30k --set data.image_size=[32,48] --out results/city-t-eval`.
 #    Why is the number meaningless (look at the fixture's size)?
