@@ -307,9 +307,9 @@ class _CliqueMiner:
         x, y = pts[:, 0].copy(), pts[:, 1].copy()
         geo = np.zeros((n, n), dtype=bool)
         step = min(64, max(1, _CHUNK // n))
-        for s in range(0, n, step):    # the upper triangle (pairs i < j), then mirrored
+        for s in range(0, n, step):    # the blocks on and above the diagonal, then mirrored (the distance
             geo[s:s + step, s:] = _planar_sq(x[s:s + step, None], y[s:s + step, None], x[s:], y[s:]) < self.sq_limit
-        geo = np.triu(geo, 1)
+        np.fill_diagonal(geo, False)   # is symmetric, so the lower half of a diagonal block is already right)
         geo |= geo.T
         alive = np.ones(n, dtype=bool)
         if len(blocked):
