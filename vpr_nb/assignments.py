@@ -258,6 +258,8 @@ class Grade:
 def _error_text(cell, limit: int = 600) -> str:
     for o in cell.get("outputs", []):
         if o.get("output_type") == "error":
+            if o.get("ename") == "NotImplementedError" and not o.get("evalue"):
+                return "NotImplementedError: the answer is not written yet (the solution cell still raises the stub)"
             text = f"{o.get('ename')}: {o.get('evalue')}".strip()
             return text if len(text) <= limit else text[: limit - 3] + "..."
     return ""
