@@ -237,7 +237,7 @@ def assert_own_code(fn, package: str = "vpr_nb", forbid_names=()) -> None:
     """
     refs = library_references(fn, package, forbid_names)
     name = getattr(fn, "__name__", "the answer")
-    assert not refs, (f"{name} must compute its result itself (plain numpy/torch), but "
+    assert not refs, (f"{name} must compute its result itself (plain Python, numpy or torch), but "
                       + "; ".join(dict.fromkeys(refs)) + f"; remove the use of {package}"
                       + (f" and of {', '.join(forbid_names)}" if forbid_names else ""))
 
