@@ -418,8 +418,9 @@ def _emp(old, d1, d2, width=2.5):
     start = np.concatenate([[0], np.cumsum(old["count"])])
     b1, b2 = int(d1 // width), int(d2 // width)
     x1, x2 = old["pair_desc"][start[b1]:start[b1 + 1]], old["pair_desc"][start[b2]:start[b2 + 1]]
-    r, l = np.searchsorted(x1, x2, "right"), np.searchsorted(x1, x2, "left")
-    return float((np.sum(len(x1) - r, dtype=np.float64) + 0.5 * np.sum(r - l, dtype=np.float64)) / (len(x1) * len(x2)))
+    right, left = np.searchsorted(x1, x2, "right"), np.searchsorted(x1, x2, "left")
+    return float((np.sum(len(x1) - right, dtype=np.float64) + 0.5 * np.sum(right - left, dtype=np.float64))
+                 / (len(x1) * len(x2)))
 
 
 @pytest.mark.parametrize("mode", ["all", "query-db"])
