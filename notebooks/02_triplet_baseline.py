@@ -52,7 +52,7 @@ import vpr_nb
 from vpr_nb import plots
 from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, evaluate_model, positives_within,
                                raw_pixel_descriptors, retrieve)
-from vpr_nb.losses import triplet_loss
+from vpr_nb.losses import TripletLoss, triplet_loss
 from vpr_nb.mining import mine_triplets
 from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
@@ -258,7 +258,7 @@ print(f"untrained network's chosen positive facing the query's way: {same_way.me
 def train_recipe(seed=0, **source_kwargs):
     vpr_nb.seed_everything(seed)
     net = build_model("small_cnn", "gem")
-    src = TripletSource(ds.train, "triplet", margin=MARGIN, num_negatives=M, **source_kwargs)
+    src = TripletSource(ds.train, TripletLoss(margin=MARGIN), num_negatives=M, **source_kwargs)
     hist = train(net, src, ds.val, TrainConfig(epochs=EPOCHS, optimizer="sgd", lr=0.05, step_size=STEP_SIZE, seed=seed), progress=False)
     return net, hist
 
@@ -296,7 +296,7 @@ plt.show()
 t0 = time.perf_counter()
 vpr_nb.seed_everything(0)
 hot = build_model("small_cnn", "gem")
-hot_history = train(hot, TripletSource(ds.train, "triplet", margin=MARGIN, num_negatives=M, max_heading_diff=HEADING_DIFF),
+hot_history = train(hot, TripletSource(ds.train, TripletLoss(margin=MARGIN), num_negatives=M, max_heading_diff=HEADING_DIFF),
                     ds.val, TrainConfig(epochs=HEALTH_EPOCHS, optimizer="sgd", lr=0.5, step_size=STEP_SIZE, seed=0), progress=False)
 print(f"lr 0.5 run: {HEALTH_EPOCHS} epochs in {time.perf_counter() - t0:.1f} s")
 
@@ -489,8 +489,9 @@ assert abs(got - cos_form) < 1e-5, f"unit vectors: expected the cosine form sum 
 #    `num_candidates=M`. How many epochs does each need to reach the recipe's validation R@1?
 # 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on plain
 #    L2). What fraction of mined triplets violates the margin at the end of training in each case?
-# 3. **Squared distances, trained.** Train the recipe with the graded exercise's loss (a `loss` object with
-#    the same signature as `triplet_loss`). Which margin on squared distances makes it select the same
+# 3. **Squared distances, trained.** Train the recipe with the graded exercise's loss: pass `TripletSource` a
+#    subclass of `vpr_nb.losses.TripletFamilyLoss` whose `__call__(q, p, n, geo_qp=None)` returns
+#    `my_sq_triplet_loss(q, p, n, margin)`. Which margin on squared distances makes it select the same
 #    violating triplets as $m = 0.1$ on distances, for a positive at $d(q, p) = 0.5$?
 # 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is best
 #    here? (Notebook 03 measures it with several seeds.)

@@ -53,8 +53,9 @@ import torch.nn.functional as F
 import vpr_nb
 from vpr_nb import results
 from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, evaluate_model, images_to_tensor,
-                               positives_within, raw_pixel_descriptors)
-from vpr_nb.losses import ce_triplet_loss, distance_weight, dw_triplet_loss, triplet_loss, weighted_triplet_loss
+                               raw_pixel_descriptors)
+from vpr_nb.losses import (CETripletLoss, DWTripletLoss, TripletLoss, WeightedTripletLoss, ce_triplet_loss, distance_weight,
+                           dw_triplet_loss, triplet_loss, weighted_triplet_loss)
 from vpr_nb.mining import mine_triplets
 from vpr_nb.models import build_model, init_netvlad
 from vpr_nb.pretrain import card, course_backbone
@@ -445,9 +446,12 @@ def train_split(n_queries):
 def run(aggregator, loss, lr_factor, seed, epochs, split):
     model = make_model(aggregator, seed)
     h = EXPERIMENT
-    src = TripletSource(split, loss, batch_size=h["batch_queries"], num_negatives=h["negatives"],
-                        num_candidates=h["candidates"], margin=h["margin"], sigma=h["sigma"], eps=h["eps"],
-                        max_heading_diff=h["max_heading_diff"])
+    loss_fn = {"triplet": TripletLoss(margin=h["margin"]),                                    # Eq. (3)
+               "weighted": WeightedTripletLoss(margin=h["margin"], sigma=h["sigma"], eps=h["eps"]),  # Eq. (4) x (3)
+               "ce": CETripletLoss(),                                                           # Eqs. (5)-(8)
+               "dw": DWTripletLoss(sigma=h["sigma"], eps=h["eps"])}[loss]                       # Eq. (9)
+    src = TripletSource(split, loss_fn, batch_size=h["batch_queries"], num_negatives=h["negatives"],
+                        num_candidates=h["candidates"], max_heading_diff=h["max_heading_diff"])
     sgd = h["sgd"]
     cfg = TrainConfig(epochs=epochs, lr=sgd["lr"] * lr_factor, momentum=sgd["momentum"], weight_decay=sgd["weight_decay"],
                       step_size=sgd["step_size"], gamma=sgd["gamma"], seed=seed)

@@ -53,7 +53,8 @@ import torch.nn.functional as F
 import vpr_nb
 from vpr_nb import plots, results
 from vpr_nb.aggregation import GeM, NetVLAD, kmeans_centroids, sample_local_descriptors
-from vpr_nb.evaluation import (compute_descriptors, evaluate_model, images_to_tensor,
+from vpr_nb.config import LOSSES
+from vpr_nb.evaluation import (images_to_tensor,
                                model_recall_row, raw_pixel_descriptors, recall_row)
 from vpr_nb.models import build_model, init_netvlad
 from vpr_nb.pretrain import card, course_backbone
@@ -389,8 +390,9 @@ def run(name, seed, epochs):
     model = make_model(name, seed)
     init = copy.deepcopy(model)
     t, o = EXPERIMENT["triplets"], EXPERIMENT["optimizer"]
-    source = TripletSource(train_split, t["loss"], batch_size=t["batch_size"], num_negatives=t["num_negatives"],
-                           num_candidates=t["num_candidates"], margin=t["margin"], max_heading_diff=t["max_heading_diff"])
+    source = TripletSource(train_split, LOSSES[t["loss"]](margin=t["margin"]), batch_size=t["batch_size"],
+                           num_negatives=t["num_negatives"], num_candidates=t["num_candidates"],
+                           max_heading_diff=t["max_heading_diff"])
     cfg = TrainConfig(epochs=epochs, optimizer=o["name"], lr=o["lr"], weight_decay=o["weight_decay"],
                       step_size=o["step_size"], gamma=o["gamma"], seed=seed, ns=NS)
     t0 = time.perf_counter()

@@ -51,12 +51,14 @@ import torch.nn.functional as F
 import vpr_nb
 from vpr_nb import results
 from vpr_nb.aggregation import SALAD, salad_aggregate, sinkhorn
-from vpr_nb.evaluation import (compute_descriptors, images_to_tensor, model_recall_row,
+from vpr_nb.config import LOSSES
+from vpr_nb.evaluation import (images_to_tensor, model_recall_row,
                                raw_pixel_descriptors, recall_row)
-from vpr_nb.mining import random_place_batches
+from vpr_nb.losses import MultiSimilarityLoss
 from vpr_nb.models import build_model, init_netvlad
 from vpr_nb.pretrain import card, course_backbone, place_labels
 from vpr_nb.report import record
+from vpr_nb.samplers import random_place_batches
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import PlaceBatchSource, TrainConfig, TripletSource, mean_pairwise_cosine, train
 
@@ -404,15 +406,16 @@ def recipe(name, seed, epochs):
     if name.endswith("MS recipe"):                           # SALAD's: MS loss, P places x K images, AdamW, linear decay
         batches = lambda model, epoch, rng: random_place_batches(LABELS, MS["places_per_batch"], MS["images_per_place"],
                                                                  num_batches=MS["batches_per_epoch"], seed=rng)
-        source = PlaceBatchSource(MS_IMAGES, batches, alpha=MS["alpha"], beta=MS["beta"], base=MS["base"],
-                                  miner_epsilon=MS["miner_epsilon"])
+        source = PlaceBatchSource(MS_IMAGES, batches, loss=MultiSimilarityLoss(
+            alpha=MS["alpha"], beta=MS["beta"], base=MS["base"], miner_epsilon=MS["miner_epsilon"]))
         cfg = TrainConfig(epochs=epochs, optimizer=MS["optimizer"], lr=MS["lr"], weight_decay=MS["weight_decay"],
                           scheduler="linear", linear_end_factor=0.2, linear_steps=epochs * MS["batches_per_epoch"],
                           seed=seed, ns=NS)
         return source, cfg
     t, o = EXPERIMENT["triplets"], EXPERIMENT["optimizer"]  # notebook 04's: triplets, Adam, StepLR
-    source = TripletSource(train_split, t["loss"], batch_size=t["batch_size"], num_negatives=t["num_negatives"],
-                           num_candidates=t["num_candidates"], margin=t["margin"], max_heading_diff=t["max_heading_diff"])
+    source = TripletSource(train_split, LOSSES[t["loss"]](margin=t["margin"]), batch_size=t["batch_size"],
+                           num_negatives=t["num_negatives"], num_candidates=t["num_candidates"],
+                           max_heading_diff=t["max_heading_diff"])
     cfg = TrainConfig(epochs=epochs, optimizer=o["name"], lr=o["lr"], weight_decay=o["weight_decay"],
                       step_size=o["step_size"], gamma=o["gamma"], seed=seed, ns=NS)
     return source, cfg

@@ -50,10 +50,11 @@ import vpr_nb
 from vpr_nb import plots, results
 from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, raw_pixel_descriptors
 from vpr_nb.gds import gds_profile, misordering_matrix, misordering_probability, query_topk, topk_order_agreement
-from vpr_nb.mining import random_place_batches
+from vpr_nb.losses import MultiSimilarityLoss, TripletLoss
 from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.report import record
+from vpr_nb.samplers import random_place_batches
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import PlaceBatchSource, TrainConfig, TripletSource, train
 
@@ -232,11 +233,12 @@ def finetune(recipe, seed, run):
     vpr_nb.seed_everything(seed)
     model = build_model(course_backbone(trainable_blocks=1), "gem")
     if recipe == "triplet":
-        source = TripletSource(tr, "triplet", batch_size=h["batch_size"], num_negatives=h["num_negatives"],
-                               num_candidates=h["num_candidates"], margin=h["margin"])   # neg_radius = pos_radius
+        source = TripletSource(tr, TripletLoss(margin=h["margin"]), batch_size=h["batch_size"],
+                               num_negatives=h["num_negatives"], num_candidates=h["num_candidates"])   # neg_radius = pos_radius
     else:
         source = PlaceBatchSource(images, lambda _m, _e, rng: random_place_batches(
-            places, h["places_per_batch"], h["images_per_place"], num_batches=h["batches_per_epoch"], seed=rng))
+            places, h["places_per_batch"], h["images_per_place"], num_batches=h["batches_per_epoch"], seed=rng),
+            loss=MultiSimilarityLoss())
     cfg = TrainConfig(epochs=h["epochs"], optimizer=h["optimizer"], lr=h["lr"], weight_decay=h["weight_decay"],
                       seed=seed, restore_best=h["restore_best"], ns=(1, 5))
     history = train(model, source, ds.val, cfg, progress=False)

@@ -24,7 +24,7 @@
 # Multi-Similarity loss has to separate them. You will
 #
 # * write the two ingredients (similarity-weighted group sampling within the anchor's city, and the geographic
-#   clique graph, here with a heading test) and check the invariants of `vpr_nb.mining.clique_batches`;
+#   clique graph, here with a heading test) and check the invariants of `vpr_nb.samplers.clique_batches`;
 # * measure what the batches contain: how far apart and how alike their places are, against random-place
 #   batches with the *same* place definition (the GSV-Cities baseline);
 # * run the paper's protocol at course scale: the pretrained course backbone (last block trainable) + SALAD +
@@ -47,8 +47,8 @@ import vpr_nb
 from vpr_nb import results
 from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, images_to_tensor, raw_pixel_descriptors, retrieve
 from vpr_nb.gds import gds_profile, misordering_probability, topk_order_agreement
-from vpr_nb.mining import (CliqueBatchMaker, batch_statistics, clique_batches, random_place_batches,
-                           sample_group_descriptors)
+from vpr_nb.samplers import (CliqueBatchMaker, batch_statistics, clique_batches, random_place_batches,
+                             sample_group_descriptors)
 from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.report import record
@@ -207,7 +207,7 @@ for p, d in data.items():
 # ## Build it: Eq. (1) and the batch invariants
 #
 # The weights of Eq. (1) in three lines, and a checker for what Eqs. (2) and (4) guarantee: every place
-# pairwise $< \tau$, different places $\ge \tau$ apart, no image twice. `vpr_nb.mining.clique_batches` satisfies
+# pairwise $< \tau$, different places $\ge \tau$ apart, no image twice. `vpr_nb.samplers.clique_batches` satisfies
 # them; random-place batches do not keep places apart.
 
 # %%
@@ -250,10 +250,10 @@ print(f"largest heading difference inside a place: clique {heading_spread(cb, d[
 # ## What the batches contain
 #
 # For every pair of places of a batch: the distance between their centres and the cosine similarity of their
-# descriptors (mean of the place's frozen-backbone descriptors; `vpr_nb.mining.batch_statistics`), median over
+# descriptors (mean of the place's frozen-backbone descriptors; `vpr_nb.samplers.batch_statistics`), median over
 # 20 batches of 16 places; and for every image, the distance to the nearest image of another place of its
 # batch (its hardest geographic negative). CliqueMining's point is that its places are **closer and more alike** than random
-# ones; `tests/test_mining.py` checks the same on a multi-city world.
+# ones; `tests/test_samplers.py` checks the same on a multi-city world.
 
 # %%
 def nearest_other_place(batches, utm):
@@ -351,8 +351,8 @@ class TwoHalvesSource(PlaceBatchSource):
             halves = [(slice(0, self.split * k), self.split), (slice(self.split * k, batch.size), len(batch) - self.split)]
             labels = [torch.arange(n).repeat_interleave(k) for _, n in halves]
             same = torch.nn.functional.normalize(torch.ones_like(emb.detach()), dim=1)   # collapsed reference
-            self.last_collapsed_loss = float(sum(self._ms_loss(same[s], l) for (s, _), l in zip(halves, labels)))
-            yield sum(self._ms_loss(emb[s], l) for (s, _), l in zip(halves, labels))
+            self.last_collapsed_loss = float(sum(self.loss(same[s], y) for (s, _), y in zip(halves, labels)))
+            yield sum(self.loss(emb[s], y) for (s, _), y in zip(halves, labels))
 
 def run(sampler, seed, cfg):
     b, h = cfg["batch"], cfg["train"]

@@ -144,8 +144,10 @@ ax[0].plot(x, [e["loss"] for e in history["epochs"]], marker="o")
 ax[0].set(xlabel="epoch", ylabel="mean training loss", title="synthetic-city-triplet: loss")
 ax[1].plot(x, [e["val"]["1"] for e in history["epochs"]], marker="o", label="val R@1")
 ax[1].axhline(results["test"]["1"], color="k", ls="--", label="test R@1 (best-val weights)")
-ax[1].set(xlabel="epoch", ylim=(0, 1), title="Recall@1"); ax[1].legend()
-plt.tight_layout(); plt.show()
+ax[1].set(xlabel="epoch", ylim=(0, 1), title="Recall@1")
+ax[1].legend()
+plt.tight_layout()
+plt.show()
 
 # %% [markdown]
 # ## The papers' tables beside ours
@@ -229,9 +231,14 @@ bars = [ax.bar(xs - 0.2, [p[1] for p in pairs], 0.4, label="DINOv2-SALAD"),
         ax.bar(xs + 0.2, [p[2] for p in pairs], 0.4, label="+ CliqueMining")]
 for b in bars:
     ax.bar_label(b, fmt="%.1f", fontsize=7)                  # the gaps are read from the labels
-ax.set_xticks(xs, [p[0] for p in pairs]); ax.set_ylim(0, 120); ax.set_yticks(range(0, 101, 20)); ax.set_ylabel("R@1 (%)")   # axis from 0
+ax.set_xticks(xs, [p[0] for p in pairs])
+ax.set_ylim(0, 120)                                          # axis from 0
+ax.set_yticks(range(0, 101, 20))
+ax.set_ylabel("R@1 (%)")
 ax.set_title("published gain of CliqueMining is largest on the densest dataset (Nordland)")
-ax.legend(loc="upper left", ncol=2, fontsize=8); plt.tight_layout(); plt.show()
+ax.legend(loc="upper left", ncol=2, fontsize=8)
+plt.tight_layout()
+plt.show()
 
 # %% [markdown]
 # ## Details that move the numbers, and what the presets do

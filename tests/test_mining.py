@@ -124,11 +124,3 @@ def test_mine_triplets_bad_inputs(triplet_world):
             mine_triplets(**{**base, **kw})
 
 
-def test_samplers_are_re_exported_for_the_notebooks():
-    # TEMPORARY re-export until the notebooks import vpr_nb.samplers (issue 14)
-    import vpr_nb.mining as mining
-    import vpr_nb.samplers as samplers
-    for name in ("CliqueBatchMaker", "batch_statistics", "clique_batches", "random_place_batches",
-                 "sample_group_descriptors"):
-        assert getattr(mining, name) is getattr(samplers, name)
-

@@ -47,3 +47,10 @@ def test_all_code_cells_executed_in_order():
         counts = [c.execution_count for c in nbformat.read(ipynb, as_version=4).cells if c.cell_type == "code"]
         assert all(n is not None for n in counts), f"{ipynb.name} has unexecuted code cells: re-execute it"
         assert counts == sorted(counts), f"{ipynb.name} was not executed top to bottom: re-execute it"
+
+
+def test_no_widget_state_stored():
+    """Saved ipywidgets state changes on every run and shows as raw text without it (`make notebook` strips it)."""
+    from vpr_nb.authoring import has_widget_state
+    dirty = [p.name for p in IPYNBS if has_widget_state(nbformat.read(p, as_version=4))]
+    assert not dirty, f"{dirty} carry widget state: re-execute them with `make notebook NB=NN`"

@@ -20,10 +20,6 @@ from vpr_nb._checks import check_geo_descriptors, check_int, check_positive
 from vpr_nb.evaluation import positives_within
 from vpr_nb.samplers import _as_rng, _dist
 
-# TEMPORARY re-export until the notebooks import vpr_nb.samplers
-from vpr_nb.samplers import (CliqueBatchMaker, batch_statistics, clique_batches,  # noqa: F401
-                             random_place_batches, sample_group_descriptors)
-
 
 # ----------------------------------------------------------------------------- NetVLAD triplets
 @dataclass(frozen=True, eq=False)

@@ -169,8 +169,7 @@ class TripletSource:
         loss: a :class:`vpr_nb.losses.TripletFamilyLoss` object holding its parameters:
             ``TripletLoss(margin)`` (Eq. 3), ``WeightedTripletLoss(margin, sigma, eps)`` (Eq. 4 x Eq. 3),
             ``CETripletLoss()`` (Eqs. 5-8), ``DWTripletLoss(sigma, eps)`` (Eq. 9). Default: Eq. (3) with
-            the paper's margin. (TEMPORARY: the names ``"triplet"``, ``"weighted"``, ``"ce"``, ``"dw"``
-            with ``margin``/``sigma``/``eps`` keywords still build the same object.)
+            the paper's margin.
         batch_size: queries per optimiser step; num_negatives: M; num_candidates: random negatives
             sampled per query; cache_refresh: recompute the descriptor cache every this many queries
             (None: once per epoch). pytorch-NetVlad uses M=10, 1000 candidates and a refresh every
@@ -185,9 +184,7 @@ class TripletSource:
 
     def __init__(self, split, loss: L.TripletFamilyLoss = L.TripletLoss(), *, batch_size: int = 16,
                  num_negatives: int = 5, num_candidates: int = 300, cache_refresh: int | None = None,
-                 max_heading_diff: float | None = None, neg_radius: float | None = None, **string_loss_params):
-        # TEMPORARY: string losses until the notebooks pass loss objects
-        loss = _loss_from_string(loss, string_loss_params, ("margin", "sigma", "eps"), "triplet")
+                 max_heading_diff: float | None = None, neg_radius: float | None = None):
         if not isinstance(loss, L.TripletFamilyLoss):
             raise ValueError(f"loss must be a triplet-family loss object (vpr_nb.losses.TripletLoss(margin), "
                              f"WeightedTripletLoss(margin, sigma, eps), CETripletLoss(), DWTripletLoss(sigma, eps)), "
@@ -270,16 +267,10 @@ class PlaceBatchSource:
     :func:`vpr_nb.samplers.clique_batches` on descriptors from ``model``); images in the same place slot
     share a label. ``loss`` is a :class:`vpr_nb.losses.MultiSimilarityLoss` object (its ``alpha``, ``beta``,
     ``base`` and ``miner_epsilon``; default: the SALAD / GSV-Cities recipe), called as
-    ``loss(embeddings, labels)``. (TEMPORARY: ``alpha``/``beta``/``base``/``miner_epsilon`` keywords still
-    build the same object.)
+    ``loss(embeddings, labels)``.
     """
 
-    def __init__(self, images, make_batches: Callable, *, loss: L.MultiSimilarityLoss = L.MultiSimilarityLoss(),
-                 **string_loss_params):
-        # TEMPORARY: string losses until the notebooks pass loss objects
-        if string_loss_params:
-            loss = _loss_from_string("multi-similarity", string_loss_params,
-                                     ("alpha", "beta", "base", "miner_epsilon"), "places")
+    def __init__(self, images, make_batches: Callable, *, loss: L.MultiSimilarityLoss = L.MultiSimilarityLoss()):
         self.x = as_image_array(images)
         images_to_tensor(self.x[:1])           # validates shape and dtype
         if not callable(make_batches):
@@ -321,31 +312,6 @@ class PlaceBatchSource:
             same = torch.nn.functional.normalize(torch.ones_like(emb.detach()), dim=1)   # every descriptor equal
             self.last_collapsed_loss = float(self.loss(same, labels))
             yield self.loss(emb, labels)
-
-    def _ms_loss(self, emb, labels):
-        """TEMPORARY: string losses until the notebooks pass loss objects (notebook 07 calls it; use ``self.loss``)."""
-        return self.loss(emb, labels)
-
-
-def _loss_from_string(loss, params: dict, names: tuple[str, ...], kind: str):
-    """TEMPORARY: string losses until the notebooks pass loss objects.
-
-    ``TripletSource(split, "dw", sigma=..., eps=...)`` and ``PlaceBatchSource(..., alpha=...)`` build the
-    same object as the typed config's loss registry (:func:`vpr_nb.config.build_loss`). A loss object is
-    returned unchanged (it must come without loose parameters).
-    """
-    unknown = sorted(set(params) - set(names))
-    if unknown:
-        raise ValueError(f"unexpected keyword argument(s) {unknown}; the loss parameters {names} belong to the "
-                         f"loss object, e.g. loss=vpr_nb.losses.WeightedTripletLoss(margin=0.1, sigma=800.0)")
-    if not isinstance(loss, str):
-        if params:
-            raise ValueError(f"{sorted(params)} given beside a loss object {loss!r}: set them on the loss object")
-        return loss
-    from .config import TRIPLET_LOSSES, SourceConfig, build_loss
-    if kind == "triplet" and loss not in TRIPLET_LOSSES:
-        raise ValueError(f"loss must be a loss object, or (temporarily) one of {TRIPLET_LOSSES}, got {loss!r}")
-    return build_loss(SourceConfig(kind=kind, loss=loss, **params))
 
 
 # ------------------------------------------------------------------------------ checkpoints
