@@ -7,9 +7,13 @@ descriptor distance grows with geographic distance.
 In one run it times ``gds_profile`` (quantiles only, and with ``keep_pairs=True``) against the two
 earlier implementations kept in bench/reference_gds.py -- before issue 12 ("previous": argsort of the
 values, whole-array temporaries) and issue 12's first pass ("first pass", commit 43078cd) -- alternating
-so that a change of load hits all alike, checks that their outputs are identical, and measures their
-tracemalloc peaks. Prints the speed-up and memory ratios, bytes per pair, and the memory projected for
-1M images at the same pair density (targets: >= 2x faster than before issue 12, 1M images under 8 GB).
+so that a change of load hits all alike, checks their outputs, and measures their tracemalloc peaks.
+The baselines compute each pair's descriptor distance from the gathered difference ``a_i - b_j``; the
+current code reads it from per-chunk Gram matrices (``|a|^2 + |b|^2 - 2 a.b``, BLAS), so the bin counts
+must be identical and the statistics and sorted pair distances may differ in float32 rounding only
+(checked: within ``OUTPUT_ATOL``). Prints the speed-up and memory ratios, bytes per pair, and the memory
+projected for 1M images at the same pair density (targets: >= 2x faster than before issue 12, 1M images
+under 8 GB).
 ``--images N`` runs one extra measured profile of N images (e.g. 1000000; about 3 GB of RAM).
 Nothing fails on absolute time.
 
@@ -34,6 +38,7 @@ from vpr_nb.gds import gds_profile, misordering_probability  # noqa: E402
 
 TARGET_SPEEDUP = 2.0
 TARGET_GB_1M = 8.0
+OUTPUT_ATOL = 1e-5   # descriptor distances from dot products vs the baselines' differences (unit-norm descriptors)
 
 
 def traced(fn, *args, **kwargs):
@@ -83,12 +88,16 @@ def position_descriptors(utm: np.ndarray, dim: int, rng: np.random.Generator, sc
     return d.astype(np.float32)
 
 
-def same_outputs(new, old: dict, keep: bool) -> None:
-    assert np.array_equal(new.count, old["count"]) and np.array_equal(new.mean, old["mean"])
-    assert np.array_equal(new.std, old["std"]) and new.slope == old["slope"]
-    assert all(np.array_equal(new.quantiles[q], old["quantiles"][q]) for q in old["quantiles"])
+def max_difference(new, old: dict, keep: bool) -> float:
+    """Largest absolute difference of the statistics (and, with ``keep``, of the sorted pair distances)
+    from a baseline; the pair counts per bin must be identical (the same pairs and bins)."""
+    assert np.array_equal(new.count, old["count"])
+    diffs = [np.nanmax(np.abs(new.mean - old["mean"])), np.nanmax(np.abs(new.std - old["std"])),
+             abs(new.slope - old["slope"])]
+    diffs += [np.nanmax(np.abs(new.quantiles[q] - old["quantiles"][q])) for q in old["quantiles"]]
     if keep:
-        assert np.array_equal(new.pair_desc, old["pair_desc"])
+        diffs.append(np.max(np.abs(new.pair_desc - old["pair_desc"])))
+    return float(max(diffs))
 
 
 def main() -> None:
@@ -109,8 +118,8 @@ def main() -> None:
         outs, mem = {}, {}
         for name, fn in impls.items():
             outs[name], _, mem[name] = traced(fn, keep)
-        for name in ("first pass", "previous"):
-            same_outputs(outs["now"], outs[name], keep)
+        diff = max(max_difference(outs["now"], outs[name], keep) for name in ("first pass", "previous"))
+        assert diff <= OUTPUT_ATOL, f"outputs differ from the baselines by {diff:.2g} (> {OUTPUT_ATOL:g})"
         pairs = int(outs["now"].count.sum())
         times = {name: [] for name in impls}
         for _ in range(3):   # alternate, so that a change of load hits all alike
@@ -121,7 +130,8 @@ def main() -> None:
         up_first = float(np.median(t["first pass"] / t["now"]))
         bpp = {name: mem[name] * 2 ** 20 / pairs for name in impls}
         gb_1m = bpp["now"] * pairs / n * 1_000_000 / 1e9
-        print(f"[keep_pairs={keep}] {pairs:,} pairs ({pairs / n:.0f} per image), outputs identical to both baselines")
+        print(f"[keep_pairs={keep}] {pairs:,} pairs ({pairs / n:.0f} per image), same bin counts as both baselines, "
+              f"statistics{' and pair distances' if keep else ''} within {diff:.1g} of theirs (tolerance {OUTPUT_ATOL:g})")
         print(f"  time (median of 3 alternating rounds): previous {np.median(t['previous']):.2f} s, first pass "
               f"{np.median(t['first pass']):.2f} s, now {np.median(t['now']):.2f} s; speed-up {up_prev:.2f}x over "
               f"previous (target >= {TARGET_SPEEDUP:.0f}x, ratio to target {up_prev / TARGET_SPEEDUP:.2f}), "

@@ -8,7 +8,8 @@
 
 Both compute ``gds_profile(db, utm, max_distance, bin_width, pairs="all", quantiles=(0.1, 0.5, 0.9))``
 without input validation and return ``dict(count, mean, std, quantiles, slope, intercept, pair_geo,
-pair_desc)``; the bench checks that the current implementation returns exactly the same values.
+pair_desc)``; the bench checks that the current implementation returns the same bin counts and, up to
+float32 rounding of the descriptor distances (it computes them from dot products), the same values.
 """
 from __future__ import annotations
 

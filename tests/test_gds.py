@@ -347,7 +347,10 @@ def test_query_topk_pure_function():
 # ----------------------------------------------------------------------------- issue 12: same outputs, less memory
 def _previous_gds_profile(db, db_utm, max_distance, bin_width, q=None, q_utm=None, fit_range=(0.0, 25.0),
                           qs=(0.1, 0.5, 0.9), keep_pairs=False):
-    """The computation of gds_profile before issue 12 (argsort of values, whole-array geo), for comparison."""
+    """The computation of gds_profile before issue 12 (argsort of values, whole-array geo), for comparison.
+
+    It takes the descriptor distances from the current ``_pair_descriptor_distances`` (tested against the
+    naive formula below), so the rest of the pipeline must give exactly the same outputs."""
     import math
     from scipy.spatial import cKDTree
     from vpr_nb.gds import _bin_index, _bin_quantiles, _pair_descriptor_distances, _weighted_line
@@ -423,10 +426,21 @@ def _emp(old, d1, d2, width=2.5):
                  / (len(x1) * len(x2)))
 
 
+def _naive_desc(a, b, i, j):
+    """The naive per-pair formula ``sqrt(einsum(a_i - b_j, a_i - b_j))`` in float32, row by row."""
+    return np.array([np.sqrt(np.einsum("i,i->", a[p] - b[r], a[p] - b[r])) for p, r in zip(i, j)], dtype=np.float32)
+
+
+def _exact_desc(a, b, i, j):
+    """The descriptor distances in float64 (the true values of the float32 inputs)."""
+    diff = a[i].astype(np.float64) - b[j].astype(np.float64)
+    return np.sqrt(np.einsum("ij,ij->i", diff, diff))
+
+
 @pytest.mark.parametrize("mode", ["all", "query-db"])
 def test_pair_distances_equal_the_naive_per_pair_formulas(mode):
-    # the chunked column-wise geo distances and in-place descriptor differences give, pair by pair, exactly
-    # the floats of the naive formulas sqrt(((u_i - u_j) ** 2).sum()) and sqrt(einsum(d_i - d_j, d_i - d_j))
+    # geo: the chunked column-wise distances give exactly the floats of sqrt(((u_i - u_j) ** 2).sum());
+    # descriptors: the Gram-matrix (dot product) distances agree with the difference formula to float32 rounding
     from vpr_nb.gds import _geo_pairs, _pair_descriptor_distances
     rng = np.random.default_rng(5)
     db_utm = np.cumsum(rng.normal(scale=2.0, size=(1500, 2)), axis=0) + [4.5e5, 5.1e6]
@@ -441,8 +455,53 @@ def test_pair_distances_equal_the_naive_per_pair_formulas(mode):
     naive_geo = np.array([np.sqrt(((src[a] - db_utm[b]) ** 2).sum()) for a, b in zip(i[:3000], j[:3000])])
     np.testing.assert_array_equal(geo[:3000], naive_geo)
     desc = _pair_descriptor_distances(q, db, i, j)
-    naive = np.array([np.sqrt(np.einsum("i,i->", q[a] - db[b], q[a] - db[b])) for a, b in zip(i[:3000], j[:3000])],
-                     dtype=np.float32)
-    np.testing.assert_allclose(desc[:3000], naive, rtol=1e-6)
+    assert desc.dtype == np.float32 and desc.shape == i.shape
+    np.testing.assert_allclose(desc[:3000], _naive_desc(q, db, i[:3000], j[:3000]), rtol=2e-6)
     rows = np.sqrt(np.einsum("ij,ij->i", q[i] - db[j], q[i] - db[j]))     # one block, whole-array
-    np.testing.assert_array_equal(desc, rows)
+    np.testing.assert_allclose(desc, rows, rtol=2e-6)
+    np.testing.assert_allclose(desc, _exact_desc(q, db, i, j), rtol=2e-6)
+
+
+@pytest.mark.parametrize("mode", ["all", "query-db"])
+@pytest.mark.parametrize("dim", [16, 256])
+def test_pair_distances_of_unit_descriptors_within_1e5_including_near_duplicates(mode, dim):
+    # unit-norm descriptors whose neighbours along the track are near-duplicates (noise 0 up to 1e-1):
+    # the dot formula cancels there, so those pairs must come from the difference; all within abs 1e-5
+    from vpr_nb.gds import _geo_pairs, _pair_descriptor_distances
+    rng = np.random.default_rng(21)
+    n = 2000
+    db_utm = np.cumsum(rng.normal(scale=1.0, size=(n, 2)), axis=0)
+    base = rng.normal(size=(n // 20, dim))
+    noise = np.array([0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0])[rng.integers(8, size=n)]
+    db = np.repeat(base, 20, axis=0) + noise[:, None] * rng.normal(size=(n, dim))
+    db[5] = db[4]                                     # exact duplicates: distance exactly 0
+    db = (db / np.linalg.norm(db, axis=1, keepdims=True)).astype(np.float32)
+    if mode == "all":
+        q, q_utm = db, None
+    else:
+        q_utm = db_utm[::2] + rng.normal(scale=0.5, size=(n // 2, 2))
+        q = db[::2] + (1e-4 * rng.normal(size=(n // 2, dim))).astype(np.float32)
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+    i, j, _ = _geo_pairs(db_utm, q_utm, 6.0)
+    desc = _pair_descriptor_distances(q, db, i, j)
+    assert len(desc) > 5000 and (desc < 1e-2).sum() > 100          # many near-duplicate pairs
+    np.testing.assert_allclose(desc, np.sqrt(np.einsum("ij,ij->i", q[i] - db[j], q[i] - db[j])), rtol=0, atol=1e-5)
+    np.testing.assert_allclose(desc, _exact_desc(q, db, i, j), rtol=0, atol=1e-5)
+    if mode == "all":
+        assert desc[(i == 4) & (j == 5)].tolist() == [0.0]
+
+
+def test_pair_distances_scattered_pairs_and_scaled_descriptors():
+    # pairs in random order touch many images per chunk (difference formula); descriptors far from unit norm
+    from vpr_nb.gds import _pair_descriptor_distances
+    rng = np.random.default_rng(8)
+    a = (300.0 * rng.normal(size=(5000, 64))).astype(np.float32)
+    b = (1e-3 * rng.normal(size=(4000, 64))).astype(np.float32)
+    for x, y in ((a, a), (a, a[::-1].copy()), (b, b)):
+        i = rng.integers(len(x), size=20_000).astype(np.int32)
+        j = rng.integers(len(y), size=20_000).astype(np.int32)
+        local = np.sort(i[:9000])                     # and a local block, as a k-d tree emits them
+        i[:9000], j[:9000] = local, np.minimum(local + rng.integers(0, 30, size=9000), len(y) - 1)
+        desc = _pair_descriptor_distances(x, y, i, j)
+        np.testing.assert_allclose(desc, _exact_desc(x, y, i, j), rtol=2e-6)
+    assert _pair_descriptor_distances(a, a, np.zeros(0, np.int32), np.zeros(0, np.int32)).shape == (0,)
