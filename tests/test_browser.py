@@ -42,7 +42,7 @@ CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--disable-quic",
                  "--no-first-run", "--disable-background-networking", "--disable-component-update",
                  "--disable-sync"]
-TEST_BUDGET_S = 100.0          # server start to last assertion; every wait below is also cut to what is left
+TEST_BUDGET_S = 180.0          # server start to last assertion; every wait below is also cut to what is left
 SERVER_START_TIMEOUT_S = 45.0
 UI_TIMEOUT_MS = 30_000          # opening the notebook, menus, the interrupt
 WIDGET_TIMEOUT_MS = 75_000      # imports + cells before the widget, on a loaded 2-core machine
@@ -298,7 +298,8 @@ def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_prope
                 handle.scroll_into_view_if_needed(timeout=ui())
                 handle.focus(timeout=ui())
                 page.keyboard.press("ArrowRight")   # sigma one step up (0.05 in log10)
-                deadline = time.monotonic() + budget.left_s(UPDATE_TIMEOUT_MS / 1000)
+                pressed = time.monotonic()
+                deadline = pressed + budget.left_s(UPDATE_TIMEOUT_MS / 1000)
                 after = before
                 # The widget clears its output, then prints: wait for a *complete* new text that stays
                 # the same for half a second, not an in-between state.
@@ -309,6 +310,7 @@ def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_prope
                         page.wait_for_timeout(500)
                         if _widget_text(cell, ui()) == after:
                             break
+                waited = time.monotonic() - pressed
                 cell.scroll_into_view_if_needed(timeout=ui())
                 page.screenshot(path=str(screenshot), timeout=ui())
             except (PlaywrightError, AssertionError, pytest.fail.Exception) as exc:
@@ -321,7 +323,9 @@ def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_prope
         finally:
             browser.close()
 
-    assert after != before, f"the widget output did not change after moving the sigma slider: {before!r}"
+    assert after != before, (f"the widget output did not change within {waited:.1f} s of moving the sigma slider "
+                             f"(limit {UPDATE_TIMEOUT_MS / 1000:.0f} s, or what was left of the {TEST_BUDGET_S:.0f} s "
+                             f"budget): {before!r}")
     w_before, w_after = _marked_weights(before), _marked_weights(after)
     assert sorted(w_before) == sorted(w_after), f"marked distances changed: {before!r} -> {after!r}"
     # Eq. (4) with eps fixed: w(0) = 1 / eps whatever sigma, and w(d > 0) grows with sigma.
