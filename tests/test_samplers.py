@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 import torch
 
-from vpr_nb.samplers import (CliqueBatchMaker, _CliqueMiner, _grow_clique, _grow_clique_bits, _sqrt_limit,
-                             batch_statistics, clique_batches, random_place_batches, sample_group_descriptors)
+from vpr_nb.samplers import (CliqueBatchMaker, _checked_miner, _CliqueMiner, _group_index, _grow_clique,
+                             _grow_clique_bits, _sqrt_limit, batch_statistics, clique_batches, random_place_batches,
+                             sample_group_descriptors)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -398,3 +399,44 @@ def test_region_labels_of_any_dtype_give_the_same_batches():
     bad[np.flatnonzero(as_int == 0)[0]] = 1.0  # one image of a NaN-labelled group labelled otherwise
     with pytest.raises(ValueError, match="same region"):
         clique_batches(utm, groups, desc, 5, regions=bad)
+
+
+@pytest.mark.parametrize("n, num_groups", [(1, 1), (1000, 7), (150_000, 40), (150_000, 120_000)])
+def test_group_index_is_the_stable_argsort(n, num_groups):
+    # built block by block (no temporary of the data set's size), int32 indices: the same order
+    groups = np.random.default_rng(n + num_groups).integers(0, num_groups, n)
+    order, starts = _group_index(groups)
+    assert order.dtype == np.int32
+    np.testing.assert_array_equal(order, np.argsort(groups, kind="stable"))
+    np.testing.assert_array_equal(starts, np.concatenate([[0], np.cumsum(np.bincount(groups))]))
+
+
+def test_descriptors_kept_as_a_view_or_copied_give_the_same_batches():
+    # compact ids city after city: each region's descriptors are one slice of the given array (no copy);
+    # the same groups with the cities' ids interleaved (same order within a city) need the reordered
+    # copy; both index the same groups in the same region order, so they give the same batches
+    utm, groups, desc, regions = city_worlds()
+    used, compact = np.unique(groups, return_inverse=True)
+    compact, cdesc = compact.reshape(-1), desc[used]
+    city = np.unique(regions, return_inverse=True)[1].reshape(-1)
+    gcity = np.zeros(len(used), dtype=np.int64)
+    gcity[compact] = city
+    rank = np.zeros(len(used), dtype=np.int64)
+    for c in range(city.max() + 1):
+        rank[gcity == c] = np.arange(np.sum(gcity == c))
+    inter = rank * (city.max() + 1) + gcity       # interleaved id of each compact id
+    idesc = np.zeros((inter.max() + 1, desc.shape[1]), dtype=np.float32)
+    idesc[inter] = cdesc
+    reverse = np.array([f"z{9 - c}" for c in range(10)])[city]   # the cities sorted the other way
+    for labels in (regions, reverse):
+        view = _checked_miner(utm, compact, cdesc, 10, 4, 25.0, 15, labels, None, None)
+        copy = _checked_miner(utm, inter[compact], idesc, 10, 4, 25.0, 15, labels, None, None)
+        assert view.consecutive and view.desc is None and np.shares_memory(view.gdesc, cdesc)
+        assert not copy.consecutive and copy.gdesc is None
+        np.testing.assert_array_equal(view.mine(4, 3), copy.mine(4, 3))
+        for anchor in (0, 17, len(view.present) - 1):   # over all groups (across regions) too
+            a = view.similar_groups(anchor, np.random.default_rng(anchor))
+            np.testing.assert_array_equal(inter[a], copy.similar_groups(anchor, np.random.default_rng(anchor)))
+    kw = dict(similar_groups=15, num_batches=3, seed=2, regions=regions)
+    np.testing.assert_array_equal(clique_batches(utm, groups, desc, 10, **kw),
+                                  clique_batches(utm, compact, cdesc, 10, **kw))

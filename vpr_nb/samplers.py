@@ -44,7 +44,7 @@ def _as_groups(groups, n: int | None) -> np.ndarray:
         raise ValueError(f"groups must be non-negative ids, found {int(arr.min())}")
     if n is not None and len(arr) != n:
         raise ValueError(f"groups has {len(arr)} entries but utm has {n} rows: give one group id per image")
-    return arr.astype(np.int64)
+    return arr.astype(np.int64, copy=False)   # no copy of int64 ids (the index never writes to them)
 
 
 def _seed_sequences(seed, n: int) -> list[np.random.SeedSequence]:
@@ -115,9 +115,26 @@ def _check_regions(regions: np.ndarray, groups: np.ndarray, present: np.ndarray,
 
 
 def _group_index(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(order, starts)``: the images of group ``g`` are ``order[starts[g]:starts[g + 1]]``."""
-    order = np.argsort(groups, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(np.bincount(groups))])
+    """``(order, starts)``: the images of group ``g`` are ``order[starts[g]:starts[g + 1]]``.
+
+    ``order`` is ``np.argsort(groups, kind="stable")`` (images of a group in ascending index), built
+    as a counting sort over blocks of ``_CHUNK`` images, so no temporary has the size of the data set;
+    it is int32 when the indices fit (half the memory of int64).
+    """
+    counts = np.bincount(groups)
+    starts = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=starts[1:])
+    order = np.empty(len(groups), dtype=np.int32 if len(groups) < 2**31 else np.int64)
+    cursor = starts[:-1].copy()   # next free slot of each group in ``order``
+    for s in range(0, len(groups), _CHUNK):
+        g = groups[s:s + _CHUNK]
+        o = np.argsort(g, kind="stable")          # the block's images, by group, ascending within a group
+        gs = g[o]
+        run = np.flatnonzero(np.concatenate([[True], gs[1:] != gs[:-1]]))   # first position of each group
+        lens = np.diff(np.append(run, len(gs)))
+        ids = gs[run]
+        order[np.repeat(cursor[ids] - run, lens) + np.arange(len(gs))] = o + s
+        cursor[ids] += lens
     return order, starts
 
 
@@ -178,9 +195,10 @@ class _CliqueMiner:
 
     Built once per image set: the images of each group (``order``/``starts``), the present groups
     sorted by region (``present``, with region ``r`` owning ``present[rstarts[r]:rstarts[r + 1]]``),
-    and, after :meth:`set_descriptors`, their descriptors in the same order. A batch then touches only
-    the anchor region's groups and the images of the drawn groups: its cost does not grow with the
-    number of images or regions.
+    and, after :meth:`set_descriptors`, their descriptors in the same order (a view of the given
+    descriptors when every region's groups are consecutive ids, as with compact ids city after city;
+    else a reordered copy). A batch then touches only the anchor region's groups and the images of
+    the drawn groups: its cost does not grow with the number of images or regions.
     """
 
     def __init__(self, utm: np.ndarray, groups: np.ndarray, group_descriptors: np.ndarray | None,
@@ -213,14 +231,36 @@ class _CliqueMiner:
         self.threshold = threshold
         self.sq_limit = _sqrt_limit(threshold)
         self.max_anchors = max(_MIN_ANCHORS, _ANCHORS_PER_PLACE * places_per_batch)
-        self.desc = self.sqnorm = None
+        # every region's groups are consecutive ids: its descriptors are a slice of the given ones
+        last = self.rstarts[self.rlist + 1] - 1
+        self.consecutive = bool(np.all(self.present[last] - self.present[self.rstarts[self.rlist]] ==
+                                       last - self.rstarts[self.rlist]))
+        self.desc = self.sqnorm = self.gdesc = None
         if group_descriptors is not None:
             self.set_descriptors(group_descriptors)
 
     def set_descriptors(self, group_descriptors: np.ndarray) -> None:
-        """Use these ``(G, D)`` group descriptors (rows indexed by group id)."""
-        self.desc = np.ascontiguousarray(group_descriptors[self.present])
-        self.sqnorm = np.einsum("ij,ij->i", self.desc, self.desc)
+        """Use these ``(G, D)`` group descriptors (rows indexed by group id).
+
+        Kept without a copy when every region's groups are consecutive ids (then the rows of region
+        ``r`` are one slice); else the rows of the present groups are copied in region order.
+        """
+        if self.consecutive:
+            self.gdesc, self.desc = np.ascontiguousarray(group_descriptors), None
+            sq = np.einsum("ij,ij->i", self.gdesc, self.gdesc)   # row by row: the same values as on a copy
+            self.sqnorm = sq[self.present]
+        else:
+            self.gdesc, self.desc = None, np.ascontiguousarray(group_descriptors[self.present])
+            self.sqnorm = np.einsum("ij,ij->i", self.desc, self.desc)
+
+    def _descriptors(self, lo: int, hi: int) -> np.ndarray:
+        """The descriptors of the groups ``present[lo:hi]``, in that order."""
+        if self.gdesc is None:
+            return self.desc[lo:hi]
+        first = int(self.present[lo])
+        if int(self.present[hi - 1]) - first == hi - 1 - lo:   # consecutive ids (always within a region)
+            return self.gdesc[first:first + hi - lo]
+        return self.gdesc[self.present[lo:hi]]
 
     @property
     def k_similar(self) -> int:  # over the whole data set (one region); per region see similar_groups
@@ -235,8 +275,10 @@ class _CliqueMiner:
         without replacement. Zero-weight groups (the farthest one; all of them when every distance
         is equal) are drawn uniformly, only after every positive-weight group.
         """
+        if self.sqnorm is None:
+            raise ValueError("no group descriptors: call set_descriptors first")
         hi = len(self.present) if hi is None else hi
-        desc, sq, a = self.desc[lo:hi], self.sqnorm[lo:hi], anchor - lo
+        desc, sq, a = self._descriptors(lo, hi), self.sqnorm[lo:hi], anchor - lo
         k = min(self.similar, hi - lo - 1)
         # einsum, not ``@``: a multi-threaded BLAS gemv is ~50x slower on an oversubscribed machine
         d2 = sq + sq[a] - 2.0 * np.einsum("ij,j->i", desc, desc[a])
@@ -420,7 +462,7 @@ class _CliqueMiner:
 
     def batch(self, index: int, seed: np.random.SeedSequence) -> np.ndarray:
         """One ``(places, m)`` batch; raises ValueError when the data cannot fill it."""
-        if self.desc is None:
+        if self.sqnorm is None:
             raise ValueError("no group descriptors: call set_descriptors first")
         rng = np.random.default_rng(seed)
         places: list[np.ndarray] = []
@@ -620,7 +662,7 @@ def _one_image_per_group(groups: np.ndarray, seed) -> tuple[np.ndarray, np.ndarr
     order, starts = _group_index(groups)
     sizes = np.diff(starts)
     present = np.flatnonzero(sizes > 0)
-    pick = order[starts[present] + (rng.random(len(present)) * sizes[present]).astype(np.int64)]
+    pick = order[starts[present] + (rng.random(len(present)) * sizes[present]).astype(np.int64)].astype(np.int64)
     return present, pick, len(sizes)
 
 
@@ -685,8 +727,7 @@ class CliqueBatchMaker:
             self.group_descriptors = np.zeros((num, desc.shape[1]), dtype=np.float32)
             self.group_descriptors[present] = desc
             self.refreshed_at.append(int(epoch))
-        if self.miner.desc is None or self.miner.desc.shape[1] != self.group_descriptors.shape[1] \
-                or self._set_from is not self.group_descriptors:
+        if self.miner.sqnorm is None or self._set_from is not self.group_descriptors:
             self.miner.set_descriptors(self.group_descriptors)
             self._set_from = self.group_descriptors
         return self.miner.mine(self.num_batches, int(rng.integers(2**63)), self.num_workers)
