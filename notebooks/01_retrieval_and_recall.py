@@ -180,7 +180,8 @@ l2_index.add(db)
 d2, idx_l2 = l2_index.search(q, K)
 assert np.allclose(2 - 2 * ip, d2, atol=1e-4)
 assert (idx_ip == idx_l2).mean() > 0.99
-print(f"max |(2 - 2 ip) - squared L2| = {np.abs(2 - 2 * ip - d2).max():.1e}; "
+err = np.abs(2 - 2 * ip - d2).max()   # float rounding: its exact value depends on the CPU's kernels
+print(f"max |(2 - 2 ip) - squared L2| {'<' if err < 1e-5 else '>='} 1e-5; "
       f"same top-{K} indices for {(idx_ip == idx_l2).mean():.3f} of entries")
 print(f"query 0: inner products {np.round(ip[0, :3], 3)} -> squared L2 {np.round(d2[0, :3], 3)}")
 
