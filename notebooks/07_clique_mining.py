@@ -45,7 +45,7 @@ from scipy.spatial import cKDTree
 
 import vpr_nb
 from vpr_nb import results
-from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, images_to_tensor, raw_pixel_descriptors, retrieve
+from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, raw_pixel_descriptors, retrieve
 from vpr_nb.gds import gds_profile, misordering_probability, topk_order_agreement
 from vpr_nb.samplers import (CliqueBatchMaker, batch_statistics, clique_batches, random_place_batches,
                              sample_group_descriptors)
@@ -338,22 +338,6 @@ plt.show()
 # agreement, then R@1/R@5, the near-miss share and the GDS slope (per 10 m).
 
 # %%
-class TwoHalvesSource(PlaceBatchSource):
-    # the paper's step: the first `split` places get one MS loss, the others another; the losses are summed
-    def __init__(self, images, make_batches, split):
-        super().__init__(images, make_batches)
-        self.split = split
-
-    def steps(self, model, rng, shard=(0, 1), device=None):
-        for batch in np.asarray(self.make_batches(model, self.epoch, rng)):
-            k = batch.shape[1]
-            emb = model(images_to_tensor(self.x[batch.reshape(-1)]).to(device)).float()
-            halves = [(slice(0, self.split * k), self.split), (slice(self.split * k, batch.size), len(batch) - self.split)]
-            labels = [torch.arange(n).repeat_interleave(k) for _, n in halves]
-            same = torch.nn.functional.normalize(torch.ones_like(emb.detach()), dim=1)   # collapsed reference
-            self.last_collapsed_loss = float(sum(self.loss(same[s], y) for (s, _), y in zip(halves, labels)))
-            yield sum(self.loss(emb[s], y) for (s, _), y in zip(halves, labels))
-
 def run(sampler, seed, cfg):
     b, h = cfg["batch"], cfg["train"]
     vpr_nb.seed_everything(seed)
@@ -370,7 +354,8 @@ def run(sampler, seed, cfg):
                               similar_groups=cfg["clique"]["similar_groups"], group_descriptors=gdesc["route"])
         make = lambda m, e, rng: np.concatenate([rand(half, rng), cm(m, e, rng)], axis=1)
     steps = h["epochs"] * b["batches_per_epoch"]
-    history = train(model, TwoHalvesSource(route["images"], make, half), ds.val,
+    source = PlaceBatchSource(route["images"], make, loss_groups=(half, b["clique places"]))   # one MS loss per half
+    history = train(model, source, ds.val,
                     TrainConfig(epochs=h["epochs"], optimizer=h["optimizer"], lr=h["lr"], weight_decay=h["weight_decay"],
                                 scheduler="linear", linear_steps=steps, seed=seed, restore_best=h["restore_best"],
                                 ns=(1, 5)), progress=False)

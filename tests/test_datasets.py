@@ -592,6 +592,49 @@ def test_dataset_format_validates_its_loader():
         D.DatasetFormat("toy", lambda *, check_files=True: None, recall="all")
     with pytest.raises(ValueError, match="non-empty name"):
         D.DatasetFormat("", good, recall="all")
+    with pytest.raises(ValueError, match="must take \\['check_files'\\]"):
+        D.DatasetFormat("toy", good, recall="all", load_part=lambda root, part: root)
+
+
+def test_each_format_line_holds_what_the_commands_read(recwarn):
+    """load_part reads one part of a dataset folder; the line says which part validates and which tests."""
+    R = D.REGISTRY
+    assert [f.name for f in R.values() if f.own_val] == ["pitts", "gmberton"]       # msls-val is MSLS's test set
+    assert (R["msls"].val_part, R["msls"].test_part, R["gsv-cities"].test_part, R["nordland"].train) == \
+        ("val", "val", None, False)
+    assert [f.name for f in R.values() if f.places] == ["msls", "gsv-cities"]
+    assert [f.name for f in R.values() if not f.queries] == ["gsv-cities"]
+    assert R["pitts"].settings == {"pitts_set": ("pitts30k", "pitts250k")}
+    parts = {("pitts", "val"): FIX / "pitts", ("gmberton", "test"): FIX / "gmberton" / "pitts30k",
+             ("msls", "val"): FIX / "msls_val_only", ("msls", "train"): FIX / "msls",
+             ("gsv-cities", "train"): FIX / "gsv_cities", ("nordland", "test"): FIX / "nordland"}
+    for (name, part), root in parts.items():
+        geo = R[name].load_part(root, part, check_files=False)
+        assert isinstance(geo, D.GeoSplit) and geo.format == name and geo.num_db > 0, (name, part)
+    assert D.REGISTRY["pitts"].load_part(FIX / "pitts", "test").extras["dataset"] == "pitts30k"
+    with pytest.raises(ValueError, match="must take \\['nordland_protocol'\\]"):     # load_nordland calls it protocol
+        D.DatasetFormat("toy", D.load_nordland, recall="all", load_part=D.load_nordland,
+                        settings={"nordland_protocol": None})
+    with pytest.raises(ValueError, match="already registered"):
+        D.register(R["pitts"])
+    with pytest.raises(ValueError, match="other than 'synthetic'"):
+        D.DatasetFormat("synthetic", D.load_nordland, recall="all")
+
+
+def test_a_training_split_is_a_split_with_lazy_images():
+    from vpr_nb.split import Split
+
+    t = D.TrainingSplit(D.load(FIX / "msls", "msls", cities=["trondheim", "london", "amman"]), (8, 8))
+    assert isinstance(t, Split) and t.has_places and t.has_queries and t.image_names("q") == t.geo.q_paths
+    pool = t.place_pool()
+    keep = np.concatenate([t.db_place, t.q_place]) >= 0
+    assert isinstance(pool.images, D.ImageArray) and pool.images.paths == list(np.array(t.db_paths + t.q_paths)[keep])
+    assert (pool.places >= 0).all() and len(pool.places) == len(pool.utm) == len(pool.regions) == keep.sum()
+    gsv = D.TrainingSplit(D.load(FIX / "gsv_cities", "gsv-cities"), (8, 8))
+    assert gsv.q_images is None and not gsv.has_queries and len(gsv.place_pool().images) == gsv.geo.num_db
+    gm = D.TrainingSplit(D.load(FIX / "gmberton" / "pitts30k", "gmberton"), (8, 8))
+    with pytest.raises(ValueError, match="has no place ids"):
+        gm.place_pool()
 
 
 def test_one_region_aware_positives_for_every_split():

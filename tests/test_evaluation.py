@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, images_to_tensor, positives_within,
-                               raw_pixel_descriptors, recall_at_n, retrieve)
+from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, evaluate_on_split, images_to_tensor,
+                               mean_pairwise_cosine, positives_within, raw_pixel_descriptors, recall_at_n, recall_row,
+                               retrieve)
+from vpr_nb.split import Split
 
 
 def _unit(x):
@@ -116,16 +118,43 @@ def test_bad_inputs_raise_clear_errors(call, match):
             call()
 
 
-def test_recall_row_and_mean_cosine():
-    from types import SimpleNamespace
+def _split(db_utm, q_utm, radius, **regions):
+    """A bare :class:`Split` with geotags only (what Recall@N reads)."""
+    split = Split()
+    split.name, split.db_utm, split.q_utm, split.pos_radius = "grid", np.asarray(db_utm), np.asarray(q_utm), radius
+    for k, v in regions.items():
+        setattr(split, k, np.asarray(v))
+    return split
 
-    from vpr_nb.evaluation import mean_pairwise_cosine, recall_row
+
+def test_recall_row_and_mean_cosine():
     rng = np.random.default_rng(0)
     db = rng.normal(size=(6, 4)).astype(np.float32)
     db /= np.linalg.norm(db, axis=1, keepdims=True)
-    split = SimpleNamespace(db_utm=np.arange(12.0).reshape(6, 2) * 10, q_utm=np.arange(12.0).reshape(6, 2) * 10,
-                            pos_radius=1.0)
+    split = _split(np.arange(12.0).reshape(6, 2) * 10, np.arange(12.0).reshape(6, 2) * 10, 1.0)
     row = recall_row(db, db, split, (1, 5))
     assert row == {"R@1": 1.0, "R@5": 1.0, "dim": 4, "mean cosine": round(mean_pairwise_cosine(db), 4)}
     sims = db @ db.T
     assert mean_pairwise_cosine(db) == pytest.approx(sims[~np.eye(6, dtype=bool)].mean(), abs=1e-6)
+
+
+def test_recall_on_a_split_takes_its_positives_and_convention():
+    # two cities with the same coordinates: a database image of the other city is no positive
+    utm = np.array([[0.0, 0.0], [100.0, 0.0], [0.0, 0.0], [100.0, 0.0]])
+    city = np.array(["a", "a", "b", "b"])
+    db = _unit(np.eye(4, dtype=np.float32)[[0, 1, 2, 3]] + 0.01)
+    q = _unit(np.eye(4, dtype=np.float32)[[2, 3, 0, 1]] + 0.01)     # each query looks like the other city's twin
+    flat = evaluate_descriptors(db, q, utm, utm, 1.0, (1,))
+    assert flat[1] == 1.0                                           # raw geotags: the twin is "within 1 m"
+    split = _split(utm, utm, 1.0, db_region=city, q_region=city)
+    assert evaluate_on_split(db, q, split, (1,))[1] == 0.0          # per city: it is not
+    assert [p.tolist() for p in split.positives()] == [[0], [1], [2], [3]]
+    with pytest.raises(ValueError, match="must be a vpr_nb.split.Split"):
+        recall_row(db, q, object(), (1,))
+    lonely = _split(utm, utm + [[0.0, 50.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], 1.0)
+    with pytest.warns(UserWarning, match="1 of 4 queries"):          # the split's convention, "exclude"
+        assert evaluate_on_split(_unit(np.eye(4, dtype=np.float32)), _unit(np.eye(4, dtype=np.float32)), lonely,
+                                 (1,))[1] == 1.0
+    lonely.recall_convention = "all"
+    assert evaluate_on_split(_unit(np.eye(4, dtype=np.float32)), _unit(np.eye(4, dtype=np.float32)), lonely,
+                             (1,))[1] == 0.75

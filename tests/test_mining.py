@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from vpr_nb.mining import TripletBatch, mine_triplets
+from vpr_nb.split import Split
 
 
 # ----------------------------------------------------------------------------- mine_triplets
@@ -124,3 +125,23 @@ def test_mine_triplets_bad_inputs(triplet_world):
             mine_triplets(**{**base, **kw})
 
 
+
+
+def test_mine_triplets_takes_positives_and_near_images_from_the_split(triplet_world):
+    # the database twice, as two cities with the same coordinates: the split's per-city positives decide
+    qd, dbd, qu, du, _, _ = triplet_world
+    db_utm, db_desc = np.concatenate([du, du]), np.concatenate([dbd, dbd[::-1]])
+    city = np.repeat(["a", "b"], len(du))
+    split = Split()
+    split.name, split.db_utm, split.q_utm, split.db_region, split.q_region = "twins", db_utm, qu, city, np.full(30, "a")
+    ids = np.arange(30)
+    kw = dict(train_pos_radius=10.0, neg_radius=25.0, num_negatives=5, num_candidates=300, rng=0)
+    tb = mine_triplets(qd, db_desc, qu, db_utm, ids, positives=split.positives(10.0), near=split.positives(25.0), **kw)
+    assert tb.valid.all() and (tb.positive < len(du)).all()           # every positive in the query's city
+    geo = np.linalg.norm(db_utm[tb.negatives] - qu[:, None], axis=-1)
+    assert ((geo > 25.0) | (city[tb.negatives] == "b")).all()          # the other city's images are negatives
+    assert (city[tb.negatives] == "b").any() and (geo[city[tb.negatives] == "b"] <= 25.0).any()
+    flat = mine_triplets(qd, db_desc, qu, db_utm, ids, **kw)          # raw geotags: both cities are one
+    assert (flat.positive >= len(du)).any() and (np.linalg.norm(db_utm[flat.negatives] - qu[:, None], axis=-1) > 25.0).all()
+    with pytest.raises(ValueError, match="one index array per query"):
+        mine_triplets(qd, db_desc, qu, db_utm, ids, positives=split.positives(10.0)[:3], **kw)

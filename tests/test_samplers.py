@@ -3,9 +3,11 @@ import numpy as np
 import pytest
 import torch
 
-from vpr_nb.samplers import (CliqueBatchMaker, _checked_miner, _CliqueMiner, _group_index, _grow_clique,
-                             _grow_clique_bits, _sqrt_limit, batch_statistics, clique_batches, random_place_batches,
-                             sample_group_descriptors)
+from vpr_nb.samplers import (CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBatches, batch_statistics,
+                             clique_batches, random_place_batches, sample_group_descriptors)
+from vpr_nb.samplers._common import _group_index
+from vpr_nb.samplers.clique_miner import _checked_miner, _CliqueMiner, _grow_clique, _grow_clique_bits, _sqrt_limit
+from vpr_nb.split import PlacePool
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -440,3 +442,84 @@ def test_descriptors_kept_as_a_view_or_copied_give_the_same_batches():
     kw = dict(similar_groups=15, num_batches=3, seed=2, regions=regions)
     np.testing.assert_array_equal(clique_batches(utm, groups, desc, 10, **kw),
                                   clique_batches(utm, compact, cdesc, 10, **kw))
+
+
+# ----------------------------------------------------------------------------- the reproduction command's samplers
+def two_overlapping_cities():
+    """Two street grids whose UTM coordinates overlap (city B = city A moved 3 m east and 2 m north), as two
+    cities of different UTM zones can: only the region labels keep them apart."""
+    rng = np.random.default_rng(7)
+    x = np.arange(0.0, 240.0, 4.0)
+    a = np.concatenate([np.stack([x, np.full_like(x, 60.0 * k)], 1) for k in range(4)])
+    utm = np.round(np.concatenate([a, a + [3.0, 2.0]]) + rng.normal(scale=1.0, size=(2 * len(a), 2)), 2)
+    city = np.repeat(np.array(["cityA", "cityB"]), len(a))
+    cell = (np.clip(utm[:, 0], 0, None) // 25).astype(np.int64) + 20 * np.round(utm[:, 1] / 60).astype(np.int64)
+    groups = cell + 1000 * (city == "cityB")
+    n = len(np.unique(groups))
+    desc = np.round(np.cos(np.arange(n)[:, None] * [0.37, 0.71, 1.13, 0.29]), 3).astype(np.float32)
+    return utm, groups, city, desc
+
+
+def test_cities_are_kept_apart_by_their_labels_alone():
+    # recorded at 8b2156b from the command's clique sampler, which shifted every city by 10,000 km east
+    # (u[:, 0] += city * 1e7) so that one city's places never blocked another's; now the region labels do it
+    utm, groups, city, desc = two_overlapping_cities()
+    pool = PlacePool(np.zeros((len(utm), 4, 4, 3), np.uint8), groups, utm, city)
+    maker = CliqueBatchMaker.from_pool(pool, 12, 3, similar_groups=2, group_descriptors=desc)
+    got = maker(None, 0, np.random.default_rng(3))
+    np.testing.assert_array_equal(got, [
+        [[55, 57, 54, 56], [338, 342, 341, 340], [388, 384, 389, 387], [410, 414, 412, 413], [287, 284, 288, 285], [353, 355, 350, 351], [453, 455, 456, 451], [75, 77, 74, 76], [90, 86, 91, 89], [101, 103, 102, 99], [244, 243, 241, 245], [146, 148, 149, 150]],
+        [[273, 272, 271, 276], [294, 292, 291, 295], [421, 423, 422, 424], [50, 45, 49, 44], [161, 163, 160, 158], [14, 17, 18, 15], [94, 95, 93, 97], [180, 183, 186, 181], [444, 438, 440, 439], [457, 462, 459, 458], [122, 124, 125, 123], [135, 138, 139, 134]],
+        [[253, 252, 256, 254], [324, 325, 328, 330], [357, 358, 356, 359], [19, 20, 23, 24], [216, 214, 212, 215], [227, 229, 225, 226], [83, 82, 84, 81], [202, 200, 203, 204], [423, 422, 425, 420], [476, 479, 477, 478], [280, 282, 279, 278], [297, 299, 296, 298]],
+    ])
+    closest_other_city = []
+    for b in got:
+        centre, cities = utm[b].mean(axis=1), city[b[:, 0]]
+        d = np.linalg.norm(centre[:, None] - centre[None], axis=-1)
+        same = cities[:, None] == cities[None]
+        assert (d[same & ~np.eye(len(b), dtype=bool)] >= 25.0).all()    # apart within each city
+        closest_other_city.append(d[~same].min())
+    assert min(closest_other_city) < 25.0                 # while places of two cities overlap
+    # without the labels the cities' places block each other: other batches
+    one = CliqueBatchMaker.from_pool(PlacePool(pool.images, groups, utm, None), 12, 3, similar_groups=2,
+                                     group_descriptors=desc)
+    assert not np.array_equal(one(None, 0, np.random.default_rng(3)), got)
+
+
+def test_random_places_in_turn_are_the_command_s_gsv_batches():
+    # recorded at 8b2156b from the command's EpochPlaceBatches (every place once per epoch, one city per batch)
+    groups = np.repeat(np.arange(9), [4, 5, 4, 6, 4, 3, 5, 4, 4])          # place 5 has too few images
+    regions = np.where(groups < 5, "PRS", "OSL")
+    mixed = RandomPlaceBatches(groups, 3, 4, 4, regions=regions)(None, 0, np.random.default_rng(5))
+    np.testing.assert_array_equal(mixed, [
+        [[32, 31, 33, 34], [17, 13, 14, 18], [27, 26, 30, 28]], [[36, 37, 38, 35], [11, 10, 12, 9], [3, 2, 0, 1]],
+        [[21, 22, 19, 20], [5, 4, 8, 7], [34, 33, 31, 32]], [[13, 14, 15, 16], [29, 30, 26, 27], [36, 38, 35, 37]]])
+    one = RandomPlaceBatches(groups, 3, 4, 4, regions=regions, one_city=True)(None, 0, np.random.default_rng(5))
+    np.testing.assert_array_equal(one, [
+        [[22, 21, 20, 19], [11, 12, 9, 10], [16, 13, 18, 15]], [[3, 1, 2, 0], [4, 7, 6, 8], [11, 12, 10, 9]],
+        [[27, 29, 26, 30], [33, 31, 32, 34], [38, 37, 36, 35]], [[9, 12, 11, 10], [13, 18, 17, 16], [2, 3, 0, 1]]])
+    for b in one:
+        assert len(set(regions[b.reshape(-1)])) == 1 and len(set(groups[b.reshape(-1)])) == 3
+    seed = int(np.random.default_rng(5).integers(2**63))    # the function gives the same batches
+    np.testing.assert_array_equal(one, random_place_batches(groups, 3, 4, num_batches=4, seed=seed,
+                                                            each_place_once=True, regions=regions, one_city=True))
+    every = RandomPlaceBatches(np.repeat(np.arange(12), 4), 3, 4, 4)(None, 0, np.random.default_rng(0))
+    assert sorted(set(every[:, :, 0].reshape(-1) // 4)) == list(range(12))          # each place once
+    with pytest.raises(ValueError, match="fewer than 4 places"):
+        RandomPlaceBatches(groups, 4, 4, 1, regions=regions, one_city=True)
+    with pytest.raises(ValueError, match="each_place_once"):
+        random_place_batches(groups, 3, 4, regions=regions, one_city=True)
+
+
+def test_mixed_batches_put_the_parts_side_by_side():
+    first = RandomPlaceBatches(np.repeat(np.arange(6), 4), 2, 4, 3)
+    utm, groups, desc = street_world()
+    second = CliqueBatchMaker(np.zeros((len(utm), 4, 4, 3), np.uint8), utm, groups, 3, 3, group_descriptors=desc)
+    mixed = MixedPlaceBatches([first, second], offsets=[len(utm), 0])
+    b = mixed(None, 0, np.random.default_rng(1))
+    rng = np.random.default_rng(1)
+    np.testing.assert_array_equal(b, np.concatenate([first(None, 0, rng) + len(utm), second(None, 0, rng)], axis=1))
+    assert b.shape == (3, 5, 4) and (b[:, :2] >= len(utm)).all() and (b[:, 2:] < len(utm)).all()
+    assert set(mixed.state_dict()) == {"1"}               # the clique part's group descriptors
+    with pytest.raises(ValueError, match="one make_batches"):
+        MixedPlaceBatches([first], offsets=[0, 1])

@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from vpr_nb import config as C
+from vpr_nb import experiment as E
 from vpr_nb.train import PRESETS, main, resolve_config
 
 FIX = Path(__file__).resolve().parents[1] / "data_fixtures"
@@ -154,7 +155,7 @@ def test_the_whole_config_is_validated_before_any_data(tmp_path, capsys):
     assert main(["--preset", "dwt-pitts30k", "--set", f"data.root={FIX / 'pitts'}", "--set", "data.image_size=[8,8]",
                  "--out", str(out2), "--no-progress"]) == 2
     assert "does not run on 8x8" in capsys.readouterr().err and not out2.exists()
-    with pytest.raises(ValueError, match="Nordland is a test set"):
+    with pytest.raises(ValueError, match="'nordland' is a test set"):
         C.validate(C.resolve("synthetic-city-triplet", ["data.format=nordland", "data.root=/x"]))
     with pytest.raises(ValueError, match="no queries"):
         C.validate(C.resolve("salad-gsv", ["source.kind=triplet", "data.root=/g", "data.val_root=/p",
@@ -162,9 +163,8 @@ def test_the_whole_config_is_validated_before_any_data(tmp_path, capsys):
 
 
 def test_real_data_preset_without_root_says_how_to_fix():
-    from vpr_nb.train import load_data
     with pytest.raises(ValueError, match="data.root"):
-        load_data(resolve_config("dwt-pitts30k")["data"])
+        E.load_split(C.resolve("dwt-pitts30k"), "train")
 
 
 # ------------------------------------------------------------------------------------------ presets
@@ -180,7 +180,7 @@ def test_each_preset_builds_its_model_and_counts_its_steps(name, dinov2):
     cfg = C.resolve(name)
     C.validate(cfg, for_training=False)
     torch.manual_seed(0)
-    model = C.build_checked(cfg)              # dummy batch at the training (and evaluation) size
+    model = E.build_checked(cfg)              # dummy batch at the training (and evaluation) size
     assert model.out_dim >= 1
     if name.startswith("salad"):
         assert model.aggregator.num_channels == model.backbone.out_channels
@@ -190,7 +190,7 @@ def test_each_preset_builds_its_model_and_counts_its_steps(name, dinov2):
                             "val").format == "pitts"
     if name in PAPER_STEPS:
         sizes, steps = PAPER_STEPS[name]
-        assert C.optimizer_steps(cfg, **sizes) == steps
+        assert E.optimizer_steps(cfg, **sizes) == steps
         if name == "salad-gsv":
             assert 3900 <= steps <= 4200       # why SALAD's LinearLR spans 4000 steps
     else:
@@ -198,7 +198,7 @@ def test_each_preset_builds_its_model_and_counts_its_steps(name, dinov2):
         ds = make_dataset(cfg.data.preset, cfg.data.seed, cfg.data.size, **cfg.data.overrides)
         sizes = ({"num_queries": len(ds.train.q_images)} if cfg.source.kind == "triplet"
                  else {"num_places": len(np.unique(ds.train.db_place))})
-        assert C.optimizer_steps(cfg, **sizes) >= cfg.train.epochs
+        assert E.optimizer_steps(cfg, **sizes) >= cfg.train.epochs
 
 
 # ------------------------------------------------------------------------------------------ end to end on fixtures
@@ -231,7 +231,7 @@ def test_dwt_pitts30k_end_to_end_on_fixtures(tmp_path):
     for part in ("train", "val", "test"):
         (root / "datasets" / f"pitts30k_{part}.mat").rename(root / "datasets" / f"pitts250k_{part}.mat")
     cfg = C.resolve("dwt-pitts30k", [f"data.root={root}", "data.pitts_set=pitts250k", "data.image_size=[32,32]"])
-    assert C.load_split(cfg, "test").geo.extras["dataset"] == "pitts250k"
+    assert E.load_split(cfg, "test").geo.extras["dataset"] == "pitts250k"
 
 
 def _salad_sets(tmp):
@@ -274,7 +274,30 @@ def test_salad_cliquemining_end_to_end_and_unreadable_images(tmp_path, dinov2):
     assert "london" in listed and "runcated" in listed
     cfg = C.resolve("salad-cliquemining-msls", [s for s in sets if "=" in s] + ["data.check_images=fail"])
     with pytest.raises(ValueError, match="cannot be decoded"):
-        C.load_split(cfg, "train")
+        E.load_split(cfg, "train")
+
+
+def test_cliquemining_preset_sums_one_loss_per_half():
+    """serizba/cliquemining's training_step: one MS loss over the GSV-Cities places, one over the clique places."""
+    from vpr_nb.datasets import TrainingSplit, load
+    from vpr_nb.models import build_model
+
+    full = C.resolve("salad-cliquemining-msls").source
+    assert (full.places_per_batch - E.clique_places(full), E.clique_places(full)) == (30, 30)
+    cfg = C.resolve("salad-cliquemining-msls", [f"data.root={FIX / 'msls'}", f"data.gsv_root={FIX / 'gsv_cities'}",
+                                                f"data.val_root={FIX / 'pitts'}", "data.image_size=[28,28]",
+                                                "source.places_per_batch=3", "source.clique_places=1",
+                                                "source.clique_batches_per_epoch=1", "data.check_images=off"])
+    with pytest.warns(UserWarning, match="MSLS training cities are absent"):
+        msls = E.load_split(cfg, "train")
+    gsv = TrainingSplit(load(FIX / "gsv_cities", "gsv-cities"), (28, 28))
+    source, per_epoch = E.build_source(cfg, msls, gsv)
+    assert source.loss_groups == (2, 1) and per_epoch == 2
+    torch.manual_seed(0)
+    batches = source.make_batches(build_model("small_cnn", "gem", backbone_kwargs={"width": 8, "out_channels": 16}),
+                                  0, np.random.default_rng(0))
+    paths = np.array(source.x.paths)[batches]                     # (batches, places, images)
+    assert all("gsv_cities" in p for p in paths[:, :2].reshape(-1)) and all("msls" in p for p in paths[:, 2:].reshape(-1))
 
 
 def test_val_equal_to_test_images_is_refused(tmp_path):
@@ -287,7 +310,7 @@ def test_val_equal_to_test_images_is_refused(tmp_path):
     cfg = C.resolve("synthetic-city-triplet", ["data.format=gmberton", f"data.root={root}", "data.image_size=[16,16]",
                                                'model.backbone_kwargs={"width": 8, "out_channels": 16}'])
     with pytest.raises(ValueError, match="validation and test are the same images"):
-        C.train_run(cfg, None, progress=False)
+        E.train_run(cfg, None, progress=False)
 
 
 # ------------------------------------------------------------------------------------------ evaluation
@@ -295,25 +318,25 @@ def _checkpoint(tmp_path):
     from vpr_nb.training import save_checkpoint
     torch.manual_seed(0)
     cfg = C.resolve("synthetic-city-triplet", ['model.backbone_kwargs={"width": 8, "out_channels": 16}'])
-    return cfg, save_checkpoint(tmp_path / "best.pt", {"model": C.build(cfg).state_dict()})
+    return cfg, save_checkpoint(tmp_path / "best.pt", {"model": E.build(cfg).state_dict()})
 
 
 def test_evaluate_needs_only_the_test_data(tmp_path, capsys):
     cfg, ck = _checkpoint(tmp_path)
     msls = C.with_overrides(cfg, ["data.format=msls", f"data.root={FIX / 'msls_val_only'}", "data.image_size=[16,16]"])
-    res = C.evaluate_run(msls, ck, tmp_path / "ev", grid_queries=0)
+    res = E.evaluate_run(msls, ck, tmp_path / "ev", grid_queries=0)
     assert res["recall_convention"] == "exclude" and res["num_queries"] == 4 and res["test_data"].startswith("msls:val")
     assert "Recall@N convention: exclude" in capsys.readouterr().out
     gm = C.with_overrides(cfg, ["data.format=gmberton", f"data.root={FIX / 'gmberton' / 'pitts30k'}",
                                 "data.image_size=[16,16]"])
-    res = C.evaluate_run(gm, ck, None)
+    res = E.evaluate_run(gm, ck, None)
     assert res["recall_convention"] == "all" and res["num_queries"] == 3 == res["num_queries_total"]
     assert res["queries_without_positive"] == 1
-    ex = C.evaluate_run(C.with_overrides(gm, ["eval.recall=exclude"]), ck, None)
+    ex = E.evaluate_run(C.with_overrides(gm, ["eval.recall=exclude"]), ck, None)
     assert ex["num_queries"] == 2 and ex["recall"]["1"] == pytest.approx(res["recall"]["1"] * 3 / 2)
     nord = C.with_overrides(cfg, ["data.format=nordland", f"data.root={FIX / 'nordland'}", "data.image_size=[16,16]",
                                   "data.nordland_protocol=25m"])
-    res = C.evaluate_run(nord, ck, None)
+    res = E.evaluate_run(nord, ck, None)
     assert res["data"]["nordland_protocol"] == "25m" and res["num_queries"] == 4
 
 
@@ -338,20 +361,6 @@ def test_evaluate_a_run_and_another_dataset(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ samplers and resume
-def test_gsv_batches_one_city_and_every_place_once():
-    groups = np.repeat(np.arange(12), 4)
-    regions = np.where(groups < 7, "PRS", "OSL")
-    make = C.EpochPlaceBatches(groups, regions, 3, 4, num_batches=4, one_city=True)
-    batches = make(None, 0, np.random.default_rng(0))
-    assert batches.shape == (4, 3, 4)
-    for b in batches:
-        assert len(set(regions[b.reshape(-1)])) == 1 and len(set(groups[b.reshape(-1)])) == 3
-    mixed = C.EpochPlaceBatches(groups, regions, 3, 4, num_batches=4)(None, 0, np.random.default_rng(0))
-    assert sorted(set(groups[mixed[:, :, 0].reshape(-1)])) == list(range(12))          # each place once
-    with pytest.raises(ValueError, match="fewer than 8 places"):
-        C.EpochPlaceBatches(groups, regions, 8, 4, 1, one_city=True)
-
-
 @pytest.mark.parametrize("sampler", ["random", "clique"])
 def test_place_samplers_train(sampler):
     from vpr_nb import seed_everything
@@ -362,7 +371,7 @@ def test_place_samplers_train(sampler):
     ds = make_dataset("route", 0, num_frames=200, image_size=(16, 24))
     cfg = C.resolve("synthetic-route-ms", [f"source.sampler={sampler}", "source.places_per_batch=4",
                                            "source.batches_per_epoch=2"])
-    source, per_epoch = C.build_source(cfg, ds.train)
+    source, per_epoch = E.build_source(cfg, ds.train)
     assert per_epoch == 2
     batches = source.make_batches(None if sampler == "random" else build_model("small_cnn", "gem"), 0,
                                   np.random.default_rng(0))
@@ -372,7 +381,7 @@ def test_place_samplers_train(sampler):
     hist = train(model, source, ds.val, TrainConfig(epochs=1, optimizer="adam", lr=1e-3), progress=False)
     assert np.isfinite(hist.losses).all()
     with pytest.raises(ValueError, match="gsv_root|GSV"):
-        C.build_source(C.with_overrides(cfg, ["source.sampler=clique+random"]), ds.train)
+        E.build_source(C.with_overrides(cfg, ["source.sampler=clique+random"]), ds.train)
 
 
 def test_cliquemining_run_resumes_exactly(tmp_path):
@@ -391,11 +400,11 @@ def test_cliquemining_run_resumes_exactly(tmp_path):
         return build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
 
     full = fresh()
-    train(full, C.build_source(cfg, ds.train)[0], ds.val, tc, progress=False)
+    train(full, E.build_source(cfg, ds.train)[0], ds.val, tc, progress=False)
     part = fresh()
-    train(part, C.build_source(cfg, ds.train)[0], ds.val, tc, checkpoint_dir=tmp_path, progress=False, stop_after=1)
+    train(part, E.build_source(cfg, ds.train)[0], ds.val, tc, checkpoint_dir=tmp_path, progress=False, stop_after=1)
     resumed = fresh()                                     # a new process: fresh model and sampler
-    train(resumed, C.build_source(cfg, ds.train)[0], ds.val, tc, checkpoint_dir=tmp_path, progress=False)
+    train(resumed, E.build_source(cfg, ds.train)[0], ds.val, tc, checkpoint_dir=tmp_path, progress=False)
     assert all(torch.equal(a, b) for a, b in zip(full.state_dict().values(), resumed.state_dict().values()))
 
 
@@ -439,8 +448,10 @@ def test_real_format_split_trains_and_evaluates():
     model = build_model("small_cnn", "gem", backbone_kwargs=dict(width=8, out_channels=16))
     assert compute_descriptors(model, split.db_images).shape == (len(split.db_images), 16)
     source = TripletSource(split, batch_size=2, num_negatives=1, num_candidates=10)
-    with pytest.warns(UserWarning, match="no positive"):        # the fixture has a query without positives
-        hist = train(model, source, split, TrainConfig(epochs=1, ns=(1, 2)), progress=False)
-        assert len(hist.epochs) == 1 and set(evaluate_model(model, split, ns=(1, 2))) == {1, 2}
+    hist = train(model, source, split, TrainConfig(epochs=1, ns=(1, 2)), progress=False)
+    assert len(hist.epochs) == 1 and set(evaluate_model(model, split, ns=(1, 2))) == {1, 2}
+    assert split.recall_convention == "all"      # validation and evaluation count the query without a positive...
+    with pytest.warns(UserWarning, match="no positive"):        # ...which the MSLS convention leaves out
+        evaluate_model(model, split, ns=(1,), no_positive="exclude")
     with pytest.raises(ValueError, match="fixed size"):
         ImageArray(split.geo.db_paths, None)

@@ -387,6 +387,8 @@ _FACTORY: dict[str, tuple[type[nn.Module], str]] = {
     "netvlad": (NetVLAD, "dim"), "salad": (SALAD, "num_channels"),
 }
 AGGREGATOR_NAMES = tuple(_FACTORY)
+# the constructor argument of each aggregator that make_aggregator fills with the backbone's channel count
+CHANNEL_ARGUMENTS = {name: arg for name, (_, arg) in _FACTORY.items()}
 
 
 def make_aggregator(name: str, in_channels: int, **kwargs) -> nn.Module:

@@ -7,7 +7,8 @@ e.g. MSLS-val for an MSLS run, so a folder holding only cph and sf suffices). ``
 --set data.root=/path`` evaluates on another dataset (the test data then follows the new format unless
 ``data.test_*`` are set too). Writes ``recalls.json`` (Recall@N, the Recall@N convention used and
 ``num_queries`` = the queries it divides by), optionally ``predictions.csv`` (``--predictions``) and
-``retrieval_grid.png``. The run logic is :func:`vpr_nb.config.evaluate_run`.
+``retrieval_grid.png``. The run logic is :func:`vpr_nb.experiment.evaluate_run`; this module only parses
+the command line.
 """
 from __future__ import annotations
 
@@ -16,15 +17,8 @@ import json
 import sys
 from pathlib import Path
 
-from .config import RunConfig, evaluate_run, resolve, split_override, with_overrides
-
-
-def evaluate_checkpoint(cfg, checkpoint, out: Path | None = None, predictions: bool = False,
-                        grid_queries: int = 8, device: str = "auto") -> dict:
-    """Recall@N of ``checkpoint`` on the test data of ``cfg`` (a :class:`RunConfig` or its dict)."""
-    if isinstance(cfg, dict):
-        cfg = RunConfig.from_dict(cfg)
-    return evaluate_run(cfg, checkpoint, out, predictions=predictions, grid_queries=grid_queries, device=device)
+from .config import RunConfig, resolve, split_override, with_overrides
+from .experiment import evaluate_run
 
 
 def run_config(run_dir: Path, overrides=()) -> RunConfig:

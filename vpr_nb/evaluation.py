@@ -5,12 +5,15 @@ Protocol (as in NetVLAD, gsv-cities, SALAD and CliqueMining evaluation code):
 1. every database and query image is mapped to an L2-normalised global descriptor;
 2. for each query, the ``k`` nearest database descriptors are retrieved with an *exact* faiss search;
 3. a database image is a *positive* of a query when their geotags are within ``radius`` metres
-   (25 m for Pittsburgh and MSLS);
+   (25 m for Pittsburgh and MSLS), inside the query's region (city) when the split has regions: on a
+   split, positives come from ``split.positives()`` (:mod:`vpr_nb.split`; :func:`positives_within` is the
+   radius search underneath);
 4. Recall@N is the fraction of queries for which at least one of the first N retrievals is a positive.
 
 By default queries that have no positive at all are excluded from Recall@N and a warning says how
 many (the MSLS convention); ``no_positive="all"`` counts them as misses over all queries (the
-convention of pytorch-NetVlad, gmberton's benchmark and GSV-Cities; ``vpr_nb.datasets.FORMAT_RECALL``).
+convention of pytorch-NetVlad, gmberton's benchmark and GSV-Cities); a split carries its dataset's
+convention (``split.recall_convention``), which :func:`evaluate_on_split` and :func:`evaluate_model` use.
 """
 from __future__ import annotations
 
@@ -20,9 +23,8 @@ from typing import Iterable, Sequence
 import faiss
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
-
-from ._checks import as_float_matrix, as_utm, check_int, check_positive
+from ._checks import as_float_matrix, check_int
+from .split import Split, check_split, positives_within
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -38,21 +40,6 @@ def normalize_imagenet(x: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"normalize_imagenet needs a float tensor with 3 channels at dim -3, got {got}; "
                          f"scale uint8 images to [0, 1] first (images_to_tensor does both)")
     return (x - torch.tensor(IMAGENET_MEAN).view(3, 1, 1)) / torch.tensor(IMAGENET_STD).view(3, 1, 1)
-
-
-def positives_within(db_utm, q_utm, radius: float) -> list[np.ndarray]:
-    """Database indices within ``radius`` metres of each query (inclusive), sorted ascending.
-
-    Uses a KD-tree range search, so memory is O(number of positives), never an N×M matrix.
-
-    Returns a list with one int64 array per query (possibly empty).
-    """
-    db = as_utm(db_utm, "db_utm")
-    q = as_utm(q_utm, "q_utm")
-    radius = check_positive(radius, "radius", allow_zero=True)
-    tree = cKDTree(db)
-    hits = tree.query_ball_point(q, r=radius, return_sorted=True)
-    return [np.asarray(h, dtype=np.int64) for h in hits]
 
 
 def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -192,23 +179,36 @@ def raw_pixel_descriptors(images) -> np.ndarray:
     return x / np.maximum(norms, 1e-12)
 
 
-def evaluate_descriptors(db_desc, q_desc, db_utm, q_utm, radius: float,
-                         ns: Sequence[int] = (1, 5, 10, 20), no_positive: str = "exclude") -> dict[int, float]:
-    """Positives + retrieval + Recall@N in one call (what every notebook reports); ``no_positive`` as in
-    :func:`recall_at_n`."""
+def _recall(db_desc, q_desc, positives, ns: Sequence[int], no_positive: str) -> dict[int, float]:
     db = as_float_matrix(db_desc, "db_desc")
     k = min(max(ns), db.shape[0])
     _, idx = retrieve(db, q_desc, k)
-    pos = positives_within(db_utm, q_utm, radius)
-    return recall_at_n(idx, pos, [n for n in ns if n <= k], no_positive=no_positive)
+    return recall_at_n(idx, positives, [n for n in ns if n <= k], no_positive=no_positive)
 
 
-def evaluate_model(model: torch.nn.Module, split, ns: Sequence[int] = (1, 5, 10, 20),
-                   batch_size: int = 256, no_positive: str = "exclude") -> dict[int, float]:
-    """Recall@N of ``model`` on a dataset split (an object with db/q images, UTM and ``pos_radius``)."""
+def evaluate_descriptors(db_desc, q_desc, db_utm, q_utm, radius: float,
+                         ns: Sequence[int] = (1, 5, 10, 20), no_positive: str = "exclude") -> dict[int, float]:
+    """Positives + retrieval + Recall@N in one call from raw geotags (:func:`positives_within`, no
+    regions); ``no_positive`` as in :func:`recall_at_n`. On a split, :func:`evaluate_on_split`."""
+    return _recall(db_desc, q_desc, positives_within(db_utm, q_utm, radius), ns, no_positive)
+
+
+def evaluate_on_split(db_desc, q_desc, split: Split, ns: Sequence[int] = (1, 5, 10, 20),
+                      no_positive: str | None = None) -> dict[int, float]:
+    """Recall@N of descriptors of ``split``'s database and queries: positives from ``split.positives()``
+    (per region when the split has regions), convention ``no_positive`` or, by default, the split's
+    ``recall_convention``."""
+    check_split(split)
+    return _recall(db_desc, q_desc, split.positives(), ns, no_positive or split.recall_convention)
+
+
+def evaluate_model(model: torch.nn.Module, split: Split, ns: Sequence[int] = (1, 5, 10, 20),
+                   batch_size: int = 256, no_positive: str | None = None) -> dict[int, float]:
+    """Recall@N of ``model`` on a :class:`~vpr_nb.split.Split` (:func:`evaluate_on_split`)."""
+    check_split(split)
     db = compute_descriptors(model, split.db_images, batch_size)
     q = compute_descriptors(model, split.q_images, batch_size)
-    return evaluate_descriptors(db, q, split.db_utm, split.q_utm, split.pos_radius, ns, no_positive)
+    return evaluate_on_split(db, q, split, ns, no_positive)
 
 
 def mean_pairwise_cosine(descriptors) -> float:
@@ -225,10 +225,11 @@ def mean_pairwise_cosine(descriptors) -> float:
     return float((s @ s - (d * d).sum()) / (n * (n - 1)))
 
 
-def recall_row(db_desc, q_desc, split, ns: Sequence[int] = (1, 5, 10)) -> dict:
-    """One row of a results table: Recall@N on ``split`` (4 decimals), the descriptor dimension and the
-    mean pairwise cosine of the database descriptors (training health, notebook 02)."""
-    rec = evaluate_descriptors(db_desc, q_desc, split.db_utm, split.q_utm, split.pos_radius, ns)
+def recall_row(db_desc, q_desc, split: Split, ns: Sequence[int] = (1, 5, 10)) -> dict:
+    """One row of a results table: Recall@N on ``split`` (:func:`evaluate_on_split`, 4 decimals), the
+    descriptor dimension and the mean pairwise cosine of the database descriptors (training health,
+    notebook 02)."""
+    rec = evaluate_on_split(db_desc, q_desc, split, ns)
     db = as_float_matrix(db_desc, "db_desc")
     return {**{f"R@{n}": round(float(rec[n]), 4) for n in ns}, "dim": int(db.shape[1]),
             "mean cosine": round(mean_pairwise_cosine(db), 4)}

@@ -69,6 +69,8 @@ __all__ = [
     "CETripletLoss",
     "DWTripletLoss",
     "MultiSimilarityLoss",
+    "LOSSES",
+    "TRIPLET_LOSSES",
 ]
 
 # Every default of this module, in one place (the functions' and the loss classes' signatures use them).
@@ -488,3 +490,15 @@ class MultiSimilarityLoss:
     def __call__(self, embeddings: torch.Tensor, labels) -> torch.Tensor:
         pairs = None if self.miner_epsilon is None else multi_similarity_miner(embeddings, labels, self.miner_epsilon)
         return multi_similarity_loss(embeddings, labels, self.alpha, self.beta, self.base, miner_pairs=pairs)
+
+
+# The one map from a loss name (the run config's ``source.loss``) to its loss object; each class's parameters
+# are named as the run config's source fields (vpr_nb.config.build_loss). A new loss: a class here and a line.
+LOSSES = {
+    "triplet": TripletLoss,                 # Eq. (3) of DW-T-Loss
+    "weighted": WeightedTripletLoss,        # Eq. (4) x Eq. (3), W-T-Loss
+    "ce": CETripletLoss,                    # Eqs. (5)-(8), CE-Loss
+    "dw": DWTripletLoss,                    # Eq. (9), DW-T-Loss
+    "multi-similarity": MultiSimilarityLoss,  # Wang et al. Eq. (6) + miner: the loss of place batches
+}
+TRIPLET_LOSSES = tuple(k for k, cls in LOSSES.items() if issubclass(cls, TripletFamilyLoss))

@@ -2,7 +2,6 @@
 
 * :func:`mine_triplets` -- NetVLAD (Arandjelovic et al., CVPR 2016) weakly supervised triplets:
   best positive within 10 m, hardest negatives beyond 25 m, with a per-query negative cache.
-* :func:`train_positives` -- the training positives of each query (database images within 10 m).
 
 The geotag/place batch samplers (CliqueMining, random places, batch statistics) are in
 :mod:`vpr_nb.samplers`, as pytorch-metric-learning keeps samplers apart from miners.
@@ -16,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vpr_nb._checks import check_geo_descriptors, check_int, check_positive
-from vpr_nb.evaluation import positives_within
-from vpr_nb.samplers import _as_rng, _dist
+from ._checks import check_geo_descriptors, check_int, check_positive
+from .samplers._common import _as_rng, _dist
+from .split import positives_within
 
 
 # ----------------------------------------------------------------------------- NetVLAD triplets
@@ -47,13 +46,10 @@ class TripletBatch:
     neg_cache: dict[int, np.ndarray]
 
 
-def train_positives(db_utm, q_utm, radius: float = 10.0) -> list[np.ndarray]:
-    """Training positives of each query: database images within ``radius`` m (inclusive).
-
-    NetVLAD trains with "potential positives" within 10 m and evaluates with 25 m; a thin
-    name for :func:`vpr_nb.evaluation.positives_within` with the training radius.
-    """
-    return positives_within(db_utm, q_utm, radius)
+def _rows(lists, n: int, what: str) -> list[np.ndarray]:
+    if len(lists) != n:
+        raise ValueError(f"{what} must hold one index array per query of query_ids ({n}), got {len(lists)}")
+    return [np.asarray(r, dtype=np.int64) for r in lists]
 
 
 def _sq_dist(q: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -64,7 +60,8 @@ def _sq_dist(q: np.ndarray, x: np.ndarray) -> np.ndarray:
 def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius: float = 10.0,
                   neg_radius: float = 25.0, num_negatives: int = 10, num_candidates: int = 1000,
                   neg_cache: dict[int, np.ndarray] | None = None, rng, margin: float | None = None,
-                  q_heading=None, db_heading=None, max_heading_diff: float | None = None) -> TripletBatch:
+                  q_heading=None, db_heading=None, max_heading_diff: float | None = None,
+                  positives=None, near=None) -> TripletBatch:
     """NetVLAD weakly supervised tuple mining (Arandjelovic et al., CVPR 2016, Sec. 4, Eq. (7)).
 
     For each query in ``query_ids``:
@@ -108,6 +105,10 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
             ``max_heading_diff``).
         max_heading_diff: keep only potential positives within this many degrees of the query's
             heading (None: any heading, the NetVLAD rule).
+        positives, near: for each of ``query_ids``, the database images within ``train_pos_radius``
+            (the potential positives) and within ``neg_radius`` (never negatives), e.g. rows of a split's
+            ``positives(train_pos_radius)`` / ``positives(neg_radius)``, which stay inside each region
+            (city). None: the radius search of ``q_utm`` / ``db_utm`` (:func:`vpr_nb.split.positives_within`).
     """
     qd, dbd, qu, du = check_geo_descriptors(q_desc, db_desc, q_utm, db_utm)
     ids = np.asarray(query_ids)
@@ -148,13 +149,13 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
     mask = np.zeros((b, m), dtype=bool)
     geo_qp = np.full(b, np.nan)
     valid = np.zeros(b, dtype=bool)
-    pos_lists = positives_within(du, qu[ids], pos_r)
-    near_lists = positives_within(du, qu[ids], neg_r)
+    pos_lists = positives_within(du, qu[ids], pos_r) if positives is None else _rows(positives, b, "positives")
+    near_lists = positives_within(du, qu[ids], neg_r) if near is None else _rows(near, b, "near")
     n_db = len(dbd)
-    for r, (qi, pos, near) in enumerate(zip(ids.tolist(), pos_lists, near_lists)):
-        take = min(c, n_db - len(near))
-        draw = rng.choice(n_db, size=min(n_db, take + len(near)), replace=False)
-        sample = draw[~np.isin(draw, near)][:take]  # uniform without replacement beyond neg_radius
+    for r, (qi, pos, close) in enumerate(zip(ids.tolist(), pos_lists, near_lists)):
+        take = min(c, n_db - len(close))
+        draw = rng.choice(n_db, size=min(n_db, take + len(close)), replace=False)
+        sample = draw[~np.isin(draw, close)][:take]  # uniform without replacement beyond neg_radius
         if max_heading_diff is not None:
             pos = pos[np.abs((dh[pos] - qh[qi] + 180.0) % 360.0 - 180.0) <= max_heading_diff]
         if len(pos) == 0:
@@ -165,7 +166,7 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
         positive[r], geo_qp[r] = pos[best], _dist(qu[qi], du[pos[best]])
         cached = np.asarray(neg_cache.get(qi, ()), dtype=np.int64)
         cached = cached[(cached >= 0) & (cached < n_db)]
-        cached = cached[_dist(du[cached], qu[qi]) > neg_r]
+        cached = cached[~np.isin(cached, close)]   # still beyond neg_radius (as the sample)
         cand = np.union1d(sample, cached)
         if len(cand) < m:
             continue

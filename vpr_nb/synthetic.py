@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._checks import check_int
+from .split import Split
 
 SPLITS = ("train", "val", "test")
 
@@ -131,7 +132,7 @@ SIZES = {
 
 
 @dataclass
-class VPRDataset:
+class VPRDataset(Split):
     """A geotagged database/query set, with the fields every notebook uses.
 
     Images are uint8 (N, H, W, 3); UTM positions float64 (N, 2) in metres; headings in degrees;
@@ -199,13 +200,6 @@ class VPRDataset:
     @property
     def test(self) -> "VPRDataset":
         return self.split("test")
-
-    def positives(self, radius: float | None = None) -> list[np.ndarray]:
-        """Database positives of every query within ``radius`` (default ``pos_radius``): the search shared
-        with the real splits, :func:`vpr_nb.datasets.region_positives` (one region: one UTM frame here)."""
-        from .datasets.positives import region_positives
-        return region_positives(self.db_utm, self.q_utm, self.pos_radius if radius is None else radius,
-                                name=self.name)
 
 
 # ----------------------------------------------------------------------------------------------

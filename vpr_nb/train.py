@@ -14,7 +14,8 @@ DistributedDataParallel (gloo on CPU, nccl on GPU).
 Presets (``--list``): ``synthetic-*`` (the notebooks' small CNN on the synthetic worlds, about a minute on
 a laptop), ``dwt-pitts30k`` (DW-T-Loss / pytorch-NetVlad on Pittsburgh30k), ``salad-gsv`` (DINOv2-SALAD on
 GSV-Cities, selected on Pitts30k-val, tested on MSLS-val) and ``salad-cliquemining-msls`` (CliqueMining:
-30 GSV-Cities + 30 MSLS clique places per batch). The run logic is :func:`vpr_nb.config.train_run`.
+30 GSV-Cities + 30 MSLS clique places per batch, one Multi-Similarity loss over each half, summed). The
+run logic is :func:`vpr_nb.experiment.train_run`; this module only parses the command line.
 """
 from __future__ import annotations
 
@@ -27,7 +28,8 @@ from pathlib import Path
 import torch
 
 from .config import PRESETS as PRESET_DEVIATIONS
-from .config import OutputFolder, RunConfig, resolve, train_run
+from .config import RunConfig, resolve, validate
+from .experiment import OutputFolder, train_run
 
 # every preset resolved (all fields, for reading and printing); the presets themselves, which hold only
 # their deviations from the defaults, are vpr_nb.config.PRESETS
@@ -38,19 +40,6 @@ PRESETS: dict[str, dict] = {name: {k: v for k, v in resolve(name).to_dict().item
 def resolve_config(preset: str, overrides=()) -> dict:
     """The resolved config of ``preset`` with overrides, as plain data (what ``config.json`` holds)."""
     return resolve(preset, overrides).to_dict()
-
-
-def load_data(data: dict, splits=("train", "val", "test")):
-    """(train, val, test) splits of a ``data`` section (those not in ``splits`` are None)."""
-    from .config import RunConfig as _RC
-    from .config import load_split
-    cfg = _RC.from_dict({"preset": "custom", "data": data})
-    synthetic = None
-    if cfg.data.format == "synthetic":
-        from .synthetic import make_dataset
-        d = cfg.data
-        synthetic = make_dataset(d.preset, d.seed, d.size, **d.overrides)
-    return tuple(load_split(cfg, s, synthetic=synthetic) if s in splits else None for s in ("train", "val", "test"))
 
 
 def run(cfg, out: Path | None = None, progress: bool = True) -> dict:
@@ -94,7 +83,6 @@ def main(argv=None) -> int:
         print(json.dumps(cfg.to_dict(), indent=1))
         if args.print_config:
             return 0
-        from .config import validate
         validate(cfg)
         if args.out is not None:
             folder = OutputFolder(args.out, resume=args.resume)

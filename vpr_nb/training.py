@@ -10,7 +10,8 @@
   one of DW-T-Loss's Eqs. (3), (4)x(3), (5)-(8), (9).
 - :class:`PlaceBatchSource` — GSV-Cities / CliqueMining-style batches of P places x K images
   (from :func:`vpr_nb.samplers.random_place_batches` or :func:`vpr_nb.samplers.clique_batches`) with a
-  :class:`vpr_nb.losses.MultiSimilarityLoss` object (loss and miner).
+  :class:`vpr_nb.losses.MultiSimilarityLoss` object (loss and miner); with ``loss_groups`` one loss per
+  slice of places, summed (CliqueMining's training step: GSV-Cities half + clique half).
 
 A source builds batches; the loss object it is given holds the loss's parameters (margin, sigma, eps, ...).
 :func:`train` is the loop; its parts are named helpers: :func:`setup_device` (device and AMP),
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import os
+import pickle
 import tempfile
 import time
 from collections.abc import Callable
@@ -38,9 +40,9 @@ from tqdm.auto import tqdm
 
 from . import losses as L
 from ._checks import check_int, check_positive
-from .evaluation import (as_image_array, compute_descriptors, evaluate_descriptors, images_to_tensor,
-                         mean_pairwise_cosine)
+from .evaluation import as_image_array, compute_descriptors, evaluate_on_split, images_to_tensor, mean_pairwise_cosine
 from .mining import mine_triplets
+from .split import Split, check_split
 
 OPTIMIZERS = ("sgd", "adam", "adamw")
 SCHEDULERS = ("step", "linear")
@@ -146,7 +148,7 @@ class History:
 
     def plot(self, axes=None, label: str | None = None):
         """Learning curves: training loss (left) and validation Recall@1 (right)."""
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt   # only when plotting (a CLI run never draws)
         if axes is None:
             _, axes = plt.subplots(1, 2, figsize=(9, 3))
         x = [e["epoch"] + 1 for e in self.epochs]
@@ -164,8 +166,9 @@ class TripletSource:
     """NetVLAD triplets on a split: anchors are the split's queries (optionally also its database).
 
     Args:
-        split: a dataset split with ``q_images/q_utm/db_images/db_utm`` (and headings if
-            ``max_heading_diff`` is set), ``train_pos_radius`` and ``pos_radius``.
+        split: a :class:`vpr_nb.split.Split` with queries (headings if ``max_heading_diff`` is set);
+            potential positives are ``split.positives(train_pos_radius)`` and the images never used as
+            negatives ``split.positives(neg_radius)``, both inside each region (city) of the split.
         loss: a :class:`vpr_nb.losses.TripletFamilyLoss` object holding its parameters:
             ``TripletLoss(margin)`` (Eq. 3), ``WeightedTripletLoss(margin, sigma, eps)`` (Eq. 4 x Eq. 3),
             ``CETripletLoss()`` (Eqs. 5-8), ``DWTripletLoss(sigma, eps)`` (Eq. 9). Default: Eq. (3) with
@@ -189,11 +192,10 @@ class TripletSource:
             raise ValueError(f"loss must be a triplet-family loss object (vpr_nb.losses.TripletLoss(margin), "
                              f"WeightedTripletLoss(margin, sigma, eps), CETripletLoss(), DWTripletLoss(sigma, eps)), "
                              f"got {loss!r}")
-        for name in ("q_images", "q_utm", "db_images", "db_utm"):
-            if not hasattr(split, name):
-                raise ValueError(f"split must provide {name} (a VPRDataset split or the like)")
-        if len(split.q_images) == 0 or len(split.db_images) == 0:
-            raise ValueError("the training split has no queries or no database images")
+        check_split(split, "the training split")
+        if not split.has_queries or len(split.db_utm) == 0:
+            raise ValueError(f"the training split {split.name} has no queries or no database images: triplets "
+                             "need both (train on places instead)")
         self.split, self.loss = split, loss
         self.batch_size = check_int(batch_size, "batch_size")
         self.num_negatives = check_int(num_negatives, "num_negatives")
@@ -202,6 +204,8 @@ class TripletSource:
         self.max_heading_diff = max_heading_diff
         self.neg_radius = split.pos_radius if neg_radius is None else check_positive(neg_radius, "neg_radius")
         self.q, self.db = split.q_images, split.db_images
+        self.positives = split.positives(split.train_pos_radius)   # per query, inside its region
+        self.near = split.positives(self.neg_radius)
         self.neg_cache: dict[int, np.ndarray] = {}
 
     def state_dict(self) -> dict:
@@ -243,7 +247,8 @@ class TripletSource:
             tb = mine_triplets(q_desc, db_desc, s.q_utm, s.db_utm, ids, train_pos_radius=s.train_pos_radius,
                                neg_radius=self.neg_radius, num_negatives=self.num_negatives,
                                num_candidates=min(self.num_candidates, len(self.db)),
-                               neg_cache=self.neg_cache, rng=rng, **heading)
+                               neg_cache=self.neg_cache, rng=rng, positives=[self.positives[i] for i in ids],
+                               near=[self.near[i] for i in ids], **heading)
             v = np.flatnonzero(tb.valid)
             total = len(v)
             if total < world:
@@ -268,9 +273,16 @@ class PlaceBatchSource:
     share a label. ``loss`` is a :class:`vpr_nb.losses.MultiSimilarityLoss` object (its ``alpha``, ``beta``,
     ``base`` and ``miner_epsilon``; default: the SALAD / GSV-Cities recipe), called as
     ``loss(embeddings, labels)``.
+
+    ``loss_groups=(P1, P2, ...)`` (summing to P) splits every batch into consecutive slices of places and
+    computes one loss (with its own miner) per slice, then sums them: the places of two slices are never
+    each other's negatives. This is CliqueMining's training step (``serizba/cliquemining``
+    ``training_step``: one MS loss over the GSV-Cities places, one over the MSLS clique places, summed),
+    ``PlaceBatchSource(images, make_batches, loss_groups=(30, 30))``. None: one loss over all P places.
     """
 
-    def __init__(self, images, make_batches: Callable, *, loss: L.MultiSimilarityLoss = L.MultiSimilarityLoss()):
+    def __init__(self, images, make_batches: Callable, *, loss: L.MultiSimilarityLoss = L.MultiSimilarityLoss(),
+                 loss_groups: tuple[int, ...] | None = None):
         self.x = as_image_array(images)
         images_to_tensor(self.x[:1])           # validates shape and dtype
         if not callable(make_batches):
@@ -279,7 +291,11 @@ class PlaceBatchSource:
             raise ValueError(f"loss must be a place-batch loss called as loss(embeddings, labels), e.g. "
                              f"vpr_nb.losses.MultiSimilarityLoss(alpha, beta, base, miner_epsilon), got {loss!r}; "
                              f"triplet-family losses go with TripletSource")
-        self.make_batches, self.loss = make_batches, loss
+        if loss_groups is not None:
+            loss_groups = tuple(check_int(g, "loss_groups entry") for g in loss_groups)
+            if not loss_groups:
+                raise ValueError("loss_groups must list the places of each loss, e.g. (30, 30), or be None")
+        self.make_batches, self.loss, self.loss_groups = make_batches, loss, loss_groups
         self.epoch = 0
 
     def state_dict(self) -> dict:
@@ -296,22 +312,41 @@ class PlaceBatchSource:
                                  "load_state_dict; resume with the same source.sampler")
             load(state["sampler"])
 
-    def steps(self, model, rng: np.random.Generator, shard: tuple[int, int] = (0, 1), device=None):
-        """One MS loss per batch; with ``shard=(rank, world)`` each process takes every world-th place."""
+    def _groups(self, p: int, shard: tuple[int, int]) -> list[np.ndarray]:
+        """The place slots of each loss group that this process (``shard=(rank, world)``) takes."""
+        sizes = self.loss_groups or (p,)
+        if sum(sizes) != p:
+            raise ValueError(f"loss_groups {sizes} cover {sum(sizes)} places but make_batches gives {p} per batch")
         rank, world = shard
+        if min(sizes) < world:
+            raise ValueError(f"every loss group needs at least one place per process: loss_groups {sizes}, "
+                             f"{world} processes")
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        return [np.arange(a, b)[rank::world] for a, b in zip(starts[:-1], starts[1:])]
+
+    def steps(self, model, rng: np.random.Generator, shard: tuple[int, int] = (0, 1), device=None):
+        """One loss per batch (the sum over ``loss_groups``); with ``shard=(rank, world)`` each process
+        takes every world-th place of each group."""
         batches = np.asarray(self.make_batches(model, self.epoch, rng))
         if batches.ndim != 3 or not np.issubdtype(batches.dtype, np.integer):
             raise ValueError(f"make_batches must return an integer array (num_batches, P, K), got {batches.shape}")
         if batches.size and (batches.min() < 0 or batches.max() >= len(self.x)):
             raise ValueError(f"make_batches returned indices outside [0, {len(self.x) - 1}]")
-        batches = batches[:, rank::world]
-        num, p, k = batches.shape
-        labels = torch.arange(p, device=device).repeat_interleave(k)
+        groups = self._groups(batches.shape[1], shard)
+        batches = batches[:, np.concatenate(groups)]
+        k = batches.shape[2]
+        ends = np.cumsum([len(g) * k for g in groups])
+        parts = [(slice(e - len(g) * k, e), torch.arange(len(g), device=device).repeat_interleave(k))
+                 for g, e in zip(groups, ends)]
         for batch in batches:
             emb = model(images_to_tensor(self.x[batch.reshape(-1)]).to(device)).float()
             same = torch.nn.functional.normalize(torch.ones_like(emb.detach()), dim=1)   # every descriptor equal
-            self.last_collapsed_loss = float(self.loss(same, labels))
-            yield self.loss(emb, labels)
+            if len(parts) == 1:
+                self.last_collapsed_loss = float(self.loss(same, parts[0][1]))
+                yield self.loss(emb, parts[0][1])
+            else:
+                self.last_collapsed_loss = float(sum(self.loss(same[s], y) for s, y in parts))
+                yield sum(self.loss(emb[s], y) for s, y in parts)
 
 
 # ------------------------------------------------------------------------------ checkpoints
@@ -333,8 +368,6 @@ def save_checkpoint(path, state: dict) -> Path:
 
 def load_checkpoint(path) -> dict:
     """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: tensors and plain data only)."""
-    import pickle
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}; train first or check the path")
@@ -498,12 +531,13 @@ def train_epoch(net: torch.nn.Module, source, epoch: int, cfg: TrainConfig, opt,
     return total / max(steps, 1), collapsed / max(steps, 1)
 
 
-def evaluate_epoch(model: torch.nn.Module, val_split, ns: tuple[int, ...]) -> tuple[dict, float]:
-    """Validation Recall@N of ``model`` on ``val_split`` and the mean pairwise cosine of its database
-    descriptors (:func:`mean_pairwise_cosine`; NaN for a one-image database)."""
+def evaluate_epoch(model: torch.nn.Module, val_split: Split, ns: tuple[int, ...]) -> tuple[dict, float]:
+    """Validation Recall@N of ``model`` on ``val_split`` (its positives and Recall@N convention,
+    :func:`vpr_nb.evaluation.evaluate_on_split`) and the mean pairwise cosine of its database descriptors
+    (:func:`mean_pairwise_cosine`; NaN for a one-image database)."""
+    check_split(val_split, "val_split")
     val_db = compute_descriptors(model, val_split.db_images)
-    val = evaluate_descriptors(val_db, compute_descriptors(model, val_split.q_images), val_split.db_utm,
-                               val_split.q_utm, val_split.pos_radius, ns)
+    val = evaluate_on_split(val_db, compute_descriptors(model, val_split.q_images), val_split, ns)
     return val, mean_pairwise_cosine(val_db) if len(val_db) > 1 else float("nan")
 
 

@@ -13,24 +13,25 @@ is one module, which documents the convention it implements:
 
 The shared pieces, one module each:
 
-- :mod:`~vpr_nb.datasets.registry` the format registry (one line per format), :func:`load`, the
-  Recall@N convention per format (:data:`FORMAT_RECALL`, :func:`recall_convention`);
-- :mod:`~vpr_nb.datasets.split` :class:`GeoSplit` and :func:`drop_images`;
-- :mod:`~vpr_nb.datasets.positives` the one region-aware positives search
-  (:func:`region_positives`) behind ``GeoSplit``, ``TrainingSplit`` and the synthetic ``VPRDataset``;
+- :mod:`~vpr_nb.datasets.registry` the format registry (one :class:`DatasetFormat` line per format:
+  loader, ``load_part``, Recall@N convention, parts, places, queries, settings), :func:`load`,
+  :func:`register`, :func:`recall_convention`;
+- :mod:`~vpr_nb.datasets.split` :class:`GeoSplit` (a loader's listing) and :func:`drop_images`;
 - :mod:`~vpr_nb.datasets.images` :func:`read_image`, :class:`ImageDataset`, the lazy
   :class:`ImageArray` and :func:`find_unreadable_images` (Pillow + torch ops, no torchvision; ImageNet
   normalisation by :func:`vpr_nb.evaluation.normalize_imagenet`);
-- :mod:`~vpr_nb.datasets.training_split` :class:`TrainingSplit`, a ``GeoSplit`` in the shape the
-  training loop and evaluation use;
+- :mod:`~vpr_nb.datasets.training_split` :class:`TrainingSplit`, a ``GeoSplit`` with its images: the
+  :class:`vpr_nb.split.Split` that training and evaluation read (positives per region:
+  :func:`vpr_nb.split.region_positives`, re-exported here);
 - :mod:`~vpr_nb.datasets.utm` WGS84 lat/lon -> UTM (:func:`latlon_to_utm`, :func:`utm_zone`).
 
 Every loader checks that each listed image exists (``check_files=True``, one stat per file) and
 names the first missing file; malformed inputs raise ``ValueError`` naming the file and field.
 
 Adding a format: write ``vpr_nb/datasets/<format>.py`` with ``load_<format>(root, *, ...,
-check_files=True) -> GeoSplit`` and add one :class:`DatasetFormat` line to ``registry._REGISTERED``
-(re-export the loader here if it should be importable as ``vpr_nb.datasets.load_<format>``).
+check_files=True) -> GeoSplit`` and ``load_part(root, part, *, check_files=True)`` and add one
+:class:`DatasetFormat` line to ``registry._REGISTERED`` (or call :func:`register` from your own module);
+the reproduction commands then train and evaluate on it (``--set data.format=<format>``).
 """
 from __future__ import annotations
 
@@ -41,19 +42,23 @@ from .images import ImageArray, ImageDataset, find_unreadable_images, read_image
 from .msls import MSLS_CITIES, load_msls
 from .nordland import NORDLAND_PROTOCOLS, load_nordland
 from .pitts import load_pitts
-from .positives import region_positives
 from .registry import (
            FORMAT_RECALL,
            FORMATS,
            RECALL_CONVENTIONS,
            REGISTRY,
            DatasetFormat,
+           SplitSpec,
+           dataset_format,
            load,
            recall_convention,
+           register,
+           role_spec,
 )
 from .split import GeoSplit, drop_images
 from .training_split import TrainingSplit
 from .utm import latlon_to_utm, utm_zone
+from ..split import region_positives
 
 __all__ = ["FORMATS", "GeoSplit", "ImageDataset", "read_image", "load", "load_pitts", "load_gmberton", "load_msls",
            "load_gsv_cities", "load_nordland", "latlon_to_utm", "utm_zone", "parse_gmberton_name", "gsv_image_name",
@@ -61,4 +66,4 @@ __all__ = ["FORMATS", "GeoSplit", "ImageDataset", "read_image", "load", "load_pi
            "find_unreadable_images", "drop_images",
            "MSLS_CITIES", "NORDLAND_PROTOCOLS", "IMAGE_SUFFIXES",
            # new with the package layout
-           "DatasetFormat", "REGISTRY", "region_positives"]
+           "DatasetFormat", "REGISTRY", "region_positives", "register", "dataset_format", "SplitSpec", "role_spec"]

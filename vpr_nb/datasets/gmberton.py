@@ -90,4 +90,9 @@ def load_gmberton(root, *, split: str = "test", pos_radius: float = 25.0, train_
     return out
 
 
-__all__ = ['load_gmberton', 'parse_gmberton_name']
+
+def load_part(root, part: str, *, check_files: bool = True) -> GeoSplit:
+    """Part ``train`` / ``val`` / ``test`` of a VPR-datasets-downloader folder: ``images/<part>``."""
+    return load_gmberton(root, split=part, check_files=check_files)
+
+__all__ = ['load_gmberton', 'parse_gmberton_name', 'load_part']

@@ -97,4 +97,12 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
     return out
 
 
-__all__ = ['load_gsv_cities', 'gsv_image_name']
+
+def load_part(root, part: str = "train", *, gsv_cities=None, min_img_per_place: int = 4,
+              check_files: bool = True) -> GeoSplit:
+    """GSV-Cities (a training set: ``part`` is ``train``), the cities ``gsv_cities`` (None: every
+    ``Dataframes/*.csv``), places of at least ``min_img_per_place`` images."""
+    return load_gsv_cities(root, cities=list(gsv_cities) if gsv_cities else None,
+                           min_img_per_place=min_img_per_place, check_files=check_files)
+
+__all__ = ['load_gsv_cities', 'gsv_image_name', 'load_part']

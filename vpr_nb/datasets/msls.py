@@ -186,4 +186,26 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
     return out
 
 
-__all__ = ['load_msls', 'MSLS_CITIES']
+MSLS_VAL_SUBSETS = ("official", "all")   # the official 740 MSLS-val queries, or every query of cph and sf
+
+
+def load_part(root, part: str, *, msls_val_subset: str = "official", check_files: bool = True) -> GeoSplit:
+    """Part ``train`` (the official training cities present under ``root``, never cph / sf; a warning
+    names the absent ones) or ``val`` (MSLS-val: cph + sf, the labelled MSLS evaluation set, with the
+    ``msls_val_subset`` queries of :data:`MSLS_VAL_SUBSETS`)."""
+    root = Path(root)
+    if part == "val":
+        sub = "official" if msls_val_subset == "official" else None
+        return load_msls(root, cities="val", val_subset=sub, check_files=check_files)
+    tv = root if root.name == "train_val" else root / "train_val"
+    cities = [c for c in MSLS_CITIES["train"] if (tv / c).is_dir()]
+    if not cities:
+        raise FileNotFoundError(f"{tv}: none of the MSLS training cities ({', '.join(MSLS_CITIES['train'])}) "
+                                "is there; the root must be the MSLS folder holding train_val/<city>")
+    missing = [c for c in MSLS_CITIES["train"] if c not in cities]
+    if missing:
+        warnings.warn(f"{tv}: {len(missing)} of the {len(MSLS_CITIES['train'])} MSLS training cities are "
+                      f"absent ({', '.join(missing[:5])}...); training on {', '.join(cities)}", stacklevel=2)
+    return load_msls(root, cities=cities, check_files=check_files)
+
+__all__ = ['load_msls', 'MSLS_CITIES', 'MSLS_VAL_SUBSETS', 'load_part']

@@ -94,4 +94,10 @@ def load_nordland(root, *, protocol: str = "auto", db_folder: str | None = None,
     return out
 
 
-__all__ = ['load_nordland', 'NORDLAND_PROTOCOLS']
+
+def load_part(root, part: str = "test", *, nordland_protocol: str = "auto", check_files: bool = True) -> GeoSplit:
+    """Nordland (a test set: ``part`` is ``test``) with the ground truth ``nordland_protocol``
+    (``auto`` or a key of :data:`NORDLAND_PROTOCOLS`)."""
+    return load_nordland(root, protocol=nordland_protocol, check_files=check_files)
+
+__all__ = ['load_nordland', 'NORDLAND_PROTOCOLS', 'load_part']

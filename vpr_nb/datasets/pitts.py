@@ -142,4 +142,12 @@ def load_pitts(mat_path, *, images_root=None, check_files: bool = True) -> GeoSp
     return split
 
 
-__all__ = ['load_pitts']
+PITTS_SETS = ("pitts30k", "pitts250k")
+
+
+def load_part(root, part: str, *, pitts_set: str = "pitts30k", check_files: bool = True) -> GeoSplit:
+    """Part ``train`` / ``val`` / ``test`` of Pittsburgh under ``root`` (the folder holding ``datasets/``):
+    ``datasets/<pitts_set>_<part>.mat`` (``pitts_set`` one of :data:`PITTS_SETS`)."""
+    return load_pitts(Path(root) / "datasets" / f"{pitts_set}_{part}.mat", check_files=check_files)
+
+__all__ = ['load_pitts', 'load_part', 'PITTS_SETS']

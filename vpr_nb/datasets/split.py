@@ -1,9 +1,11 @@
-"""The split object every real-format loader returns, :class:`GeoSplit`, and the operations on it.
+"""The listing every real-format loader returns, :class:`GeoSplit`, and the operations on it.
 
 A :class:`GeoSplit` is the common denominator of the VPR benchmarks read by :mod:`vpr_nb.datasets`
 (Pittsburgh, gmberton's layout, MSLS, GSV-Cities, Nordland): image paths plus UTM geotags of a
 database and a query side, the evaluation positives radius and optional per-image heading, place and
 region. :func:`drop_images` filters it (e.g. after :func:`~vpr_nb.datasets.find_unreadable_images`).
+It holds no images: :class:`~vpr_nb.datasets.TrainingSplit` turns it into the :class:`vpr_nb.split.Split`
+that training and evaluation read.
 """
 from __future__ import annotations
 
@@ -13,8 +15,11 @@ from typing import Sequence
 
 import numpy as np
 
+from ..split import SIDES, region_positives
 from .images import ImageDataset
-from .positives import region_positives
+
+# the optional per-image fields (besides paths and utm) of both sides, ``db_<field>`` / ``q_<field>``
+PER_IMAGE = ("heading", "place", "region")
 
 
 @dataclass(eq=False)
@@ -49,7 +54,7 @@ class GeoSplit:
     extras: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for side in ("db", "q"):
+        for side in SIDES:
             paths = getattr(self, f"{side}_paths")
             n = len(paths)
             utm = np.asarray(getattr(self, f"{side}_utm"), dtype=np.float64).reshape(-1, 2)
@@ -59,7 +64,7 @@ class GeoSplit:
                 bad = int(np.flatnonzero(~np.isfinite(utm).all(axis=1))[0])
                 raise ValueError(f"{self.name}: {side}_utm is NaN/inf for {paths[bad]}; every image needs a geotag")
             setattr(self, f"{side}_utm", utm)
-            for extra in ("heading", "place", "region"):
+            for extra in PER_IMAGE:
                 v = getattr(self, f"{side}_{extra}")
                 if v is not None and len(v) != n:
                     raise ValueError(f"{self.name}: {side}_{extra} has {len(v)} entries but {n} {side} paths")
@@ -84,7 +89,7 @@ class GeoSplit:
         """Database indices within ``radius`` (default ``pos_radius``) of each query, sorted.
 
         The radius search of NetVLAD / gmberton / SALAD evaluation (``||x_q - x_db||_2 <= r``), done
-        per region when ``*_region`` is set (:func:`~vpr_nb.datasets.positives.region_positives`).
+        per region when ``*_region`` is set (:func:`vpr_nb.split.region_positives`).
         """
         return region_positives(self.db_utm, self.q_utm, self.pos_radius if radius is None else radius,
                                 self.db_region, self.q_region, name=self.name)
@@ -124,15 +129,15 @@ def drop_images(split: GeoSplit, bad) -> GeoSplit:
         raise ValueError(f"split must be a GeoSplit, got {type(split).__name__}")
     bad = {str(p) for p in bad}
     keep = {side: np.array([p not in bad for p in getattr(split, f"{side}_paths")], dtype=bool)
-            for side in ("db", "q")}
+            for side in SIDES}
     if keep["db"].all() and keep["q"].all():
         return split
     kw = {}
-    for side in ("db", "q"):
+    for side in SIDES:
         k = keep[side]
         kw[f"{side}_paths"] = [p for p, ok in zip(getattr(split, f"{side}_paths"), k) if ok]
         kw[f"{side}_utm"] = split.__dict__[f"{side}_utm"][k]
-        for extra in ("heading", "place", "region"):
+        for extra in PER_IMAGE:
             v = getattr(split, f"{side}_{extra}")
             kw[f"{side}_{extra}"] = None if v is None else np.asarray(v)[k]
     extras = {}
@@ -149,4 +154,4 @@ def drop_images(split: GeoSplit, bad) -> GeoSplit:
                     train_pos_radius=split.train_pos_radius, extras=extras, **kw)
 
 
-__all__ = ["GeoSplit", "drop_images", "check_image_files"]
+__all__ = ["GeoSplit", "drop_images", "check_image_files", "PER_IMAGE"]

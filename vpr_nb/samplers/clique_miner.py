@@ -1,19 +1,9 @@
-"""Which places go into a training batch: geotag/place batch samplers (CliqueMining, random places).
+"""The CliqueMining index and batch search behind :func:`vpr_nb.samplers.clique_batches`.
 
-* :func:`clique_batches` -- CliqueMining (Izquierdo & Civera, ECCV 2024): batches of places that
-  are visually similar yet geographically separated, found as cliques of a geographic graph.
-* :class:`CliqueBatchMaker` -- CliqueMining batches for the training loop, with group descriptors
-  from the current model computed once (the original) or refreshed every E epochs.
-* :func:`random_place_batches` -- the GSV-Cities baseline: random places, random images of each.
-* :func:`batch_statistics` -- how close and how alike the places of a batch are.
-* :func:`sample_group_descriptors` -- one descriptor per place group (CliqueMining's group descriptors).
-
-A sampler decides *which images* form a batch from geotags and place ids (as pytorch-metric-learning's
-samplers do); the descriptor miners that pick pairs or triplets inside a batch or a database live in
-:mod:`vpr_nb.mining`.
-
-Every function takes a ``seed`` or a ``np.random.Generator`` and returns the same output for the
-same seed. Distances between geotags are Euclidean distances of UTM (easting, northing) in metres.
+:class:`_CliqueMiner` is built once per image set (the images of each group, the groups of each region,
+the group descriptors) and then mines batches: steps 1-6 of :func:`vpr_nb.samplers.clique_batches`
+(the paper's Eqs. (1)-(4)). The clique search itself works on Python-int bit sets for small pools and on
+a k-d tree with Python sets for large ones; both give the same places.
 """
 from __future__ import annotations
 
@@ -22,51 +12,12 @@ import multiprocessing
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vpr_nb._checks import as_float_matrix, as_utm, check_int, check_positive
+from .._checks import as_float_matrix, as_utm, check_int, check_positive
+from ._common import _CHUNK, _as_groups, _dist, _group_index, _seed_sequences
 
 _MIN_ANCHORS = 100  # a batch gives up after max(_MIN_ANCHORS, _ANCHORS_PER_PLACE * places) anchors
 _ANCHORS_PER_PLACE = 10
 _DENSE_MAX = 2048      # pools of up to this many images use the dense bit-set path (else k-d tree + sets)
-_CHUNK = 1 << 16       # elements per temporary in the dense distance loops (bounded memory)
-
-
-# ----------------------------------------------------------------------------- input checks
-def _as_groups(groups, n: int | None) -> np.ndarray:
-    """Validate a 1-D array of non-negative integer group ids (one per image)."""
-    arr = np.asarray(groups)
-    if arr.ndim != 1:
-        raise ValueError(f"groups must be a 1-D array with one place-group id per image, got shape {arr.shape}")
-    if len(arr) == 0:
-        raise ValueError("groups is empty: give one place-group id per image")
-    if not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"groups must hold integers (place-group ids), got dtype {arr.dtype}")
-    if arr.min() < 0:
-        raise ValueError(f"groups must be non-negative ids, found {int(arr.min())}")
-    if n is not None and len(arr) != n:
-        raise ValueError(f"groups has {len(arr)} entries but utm has {n} rows: give one group id per image")
-    return arr.astype(np.int64, copy=False)   # no copy of int64 ids (the index never writes to them)
-
-
-def _seed_sequences(seed, n: int) -> list[np.random.SeedSequence]:
-    """One independent SeedSequence per batch, derived from an int seed or a Generator."""
-    if isinstance(seed, np.random.Generator):
-        seed = int(seed.integers(2**63))
-    elif isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be a non-negative int or a np.random.Generator, got {seed!r}")
-    return np.random.SeedSequence(int(seed)).spawn(n)
-
-
-def _as_rng(rng) -> np.random.Generator:
-    if isinstance(rng, np.random.Generator):
-        return rng
-    if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool) and rng >= 0:
-        return np.random.default_rng(int(rng))
-    raise ValueError(f"rng must be a np.random.Generator (or a non-negative int seed), got {rng!r}")
-
-
-def _dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Euclidean distance of broadcastable (..., 2) UTM arrays, in metres."""
-    return np.sqrt(((a - b) ** 2).sum(axis=-1))
 
 
 def _planar_sq(ax: np.ndarray, ay: np.ndarray, bx: np.ndarray, by: np.ndarray) -> np.ndarray:
@@ -114,31 +65,7 @@ def _check_regions(regions: np.ndarray, groups: np.ndarray, present: np.ndarray,
                              "give groups that do not span regions")
 
 
-def _group_index(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(order, starts)``: the images of group ``g`` are ``order[starts[g]:starts[g + 1]]``.
-
-    ``order`` is ``np.argsort(groups, kind="stable")`` (images of a group in ascending index), built
-    as a counting sort over blocks of ``_CHUNK`` images, so no temporary has the size of the data set;
-    it is int32 when the indices fit (half the memory of int64).
-    """
-    counts = np.bincount(groups)
-    starts = np.zeros(len(counts) + 1, dtype=np.int64)
-    np.cumsum(counts, out=starts[1:])
-    order = np.empty(len(groups), dtype=np.int32 if len(groups) < 2**31 else np.int64)
-    cursor = starts[:-1].copy()   # next free slot of each group in ``order``
-    for s in range(0, len(groups), _CHUNK):
-        g = groups[s:s + _CHUNK]
-        o = np.argsort(g, kind="stable")          # the block's images, by group, ascending within a group
-        gs = g[o]
-        run = np.flatnonzero(np.concatenate([[True], gs[1:] != gs[:-1]]))   # first position of each group
-        lens = np.diff(np.append(run, len(gs)))
-        ids = gs[run]
-        order[np.repeat(cursor[ids] - run, lens) + np.arange(len(gs))] = o + s
-        cursor[ids] += lens
-    return order, starts
-
-
-# ----------------------------------------------------------------------------- CliqueMining
+# ----------------------------------------------------------------------------- clique search
 def _grow_clique(clique: list[int], cand: list[int], adj, m: int) -> list[int] | None:
     """Depth-first search for a clique of ``m`` nodes extending ``clique`` with nodes of ``cand``.
 
@@ -466,7 +393,7 @@ class _CliqueMiner:
             raise ValueError("no group descriptors: call set_descriptors first")
         rng = np.random.default_rng(seed)
         places: list[np.ndarray] = []
-        blocked = np.empty((0, 2))
+        place_region: list[int] = []   # the region of each place: only places of the anchor's region block
         used = np.zeros(len(self.rlist), dtype=bool)
         for _ in range(self.max_anchors):
             if len(self.rlist) == 1:   # one region: no draw, so regions=None mines what it always did
@@ -481,12 +408,14 @@ class _CliqueMiner:
             anchor = lo + int(rng.integers(hi - lo))
             groups = self.similar_groups(anchor, rng, lo, hi)
             pool = np.sort(np.concatenate([self.order[self.starts[g]:self.starts[g + 1]] for g in groups]))
+            near = [p for p, pr in zip(places, place_region) if pr == r]   # other regions: other UTM frames
+            blocked = self.utm[np.concatenate(near)] if near else np.empty((0, 2))
             new = self.places_in_pool(pool, blocked, self.places - len(places), rng)
             if new:
                 places += new
+                place_region += [r] * len(new)
                 if len(places) == self.places:
                     return np.stack(places)
-                blocked = self.utm[np.concatenate(places)]
         raise ValueError(
             f"could not fill batch {index}: found only {len(places)} of {self.places} places after "
             f"{self.max_anchors} anchor groups. The data has too few places of >= {self.m} images "
@@ -551,243 +480,3 @@ def _checked_miner(utm, groups, group_descriptors, places_per_batch, images_per_
     return _CliqueMiner(utm, groups, desc, places_per_batch, images_per_place, threshold, similar_groups,
                         regions, headings, max_heading_diff)
 
-
-def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images_per_place: int = 4,
-                   same_place_threshold: float = 25.0, similar_groups: int = 15, num_batches: int = 1,
-                   seed: int | np.random.Generator = 0, num_workers: int = 1, *, regions=None,
-                   headings=None, max_heading_diff: float | None = None) -> np.ndarray:
-    """CliqueMining batches (Izquierdo & Civera, ECCV 2024, Sec. 4 and ``create_dataset_part``).
-
-    Each batch is built as in the authors' code:
-
-    1. pick a *region* (MSLS city) with probability proportional to its number of place groups,
-       never one already used in this batch, and an *anchor* place-group uniformly in it;
-    2. draw ``similar_groups`` other groups **of the same region** without replacement with
-       probability proportional to ``max_j d_j - d_i``, where ``d_i`` is the Euclidean distance
-       between the descriptors of group ``i`` and of the anchor over the region's groups (linear
-       weights, anchor weight 0; if all weights are 0 the draw is uniform), so visually similar
-       groups of the same city, usually close by, are likely;
-    3. build the geographic graph on all images of these groups: an edge joins two images whose
-       UTM distance is ``< same_place_threshold`` (and, with ``max_heading_diff``, whose headings
-       differ by at most that many degrees);
-    4. take a clique of ``>= images_per_place`` images as one place and keep ``images_per_place``
-       random members of it: they are pairwise closer than the threshold;
-    5. remove the chosen images *and every image within the threshold of them*, so that all
-       later places are ``>= same_place_threshold`` from every chosen image (hard negatives);
-    6. repeat 4-5 until the batch is full or no clique is left, then go back to 1 with a new
-       region and keep filling the same batch.
-
-    Remaining differences from the original code:
-
-    * which clique: the original takes the first maximal clique of ``networkx.find_cliques``
-      (DFS order); here it is the maximal clique grown greedily (smallest index first) from the
-      smallest-index alive image that lies in a clique of ``>= images_per_place`` images;
-    * ``regions=None`` means one region (the whole data set, as one MSLS city); once every region
-      was used in a batch, regions may repeat (the original would stop); images within the
-      threshold of places already in the batch are removed before each new anchor, so every pair of
-      places of a batch is ``>= threshold`` apart, across anchors too (the original never meets its
-      earlier places again because it moves to another city);
-    * the similar groups are drawn among the group ids that have images (the original also
-      draws ids with no image, whose zero descriptor rows give them a positive weight);
-    * the heading test (``max_heading_diff``) is an option the original does not have (MSLS
-      clusters are taken as they are); removal around a chosen place ignores headings;
-    * the graph is built once per anchor instead of a new ``networkx.Graph`` from a dense adjacency
-      matrix for every place: for pools of up to 2048 images (16 MSLS-like groups hold a few hundred)
-      each image's neighbours are one Python-int bit set and the clique search and removals are bit
-      operations on them, with an alive bit set; larger pools use a k-d tree and Python sets (same
-      places, same random numbers). The per-region index is built once per call (once per run in
-      :class:`CliqueBatchMaker`), so a batch costs the same at 10k and 1M images
-      (``bench/bench_mining.py``);
-    * batches are reproducible: batch ``b`` uses ``SeedSequence(seed).spawn(num_batches)[b]``,
-      so the output does not depend on ``num_workers`` (the original seeds from pid and time).
-
-    The group descriptors are used as given: the original computes them once, offline, with the
-    pre-trained model (one random image per group). :class:`CliqueBatchMaker` wraps this function
-    for the training loop and takes them given, computes them once, or refreshes them every E epochs.
-
-    Args:
-        utm: ``(N, 2)`` UTM positions in metres, one per image.
-        groups: ``(N,)`` non-negative place-group id of each image (MSLS ``unique_cluster``).
-        group_descriptors: ``(G, D)`` one descriptor per group id ``0..G-1``, ``G > max(groups)``
-            (rows of ids without images are ignored and may be zero).
-        places_per_batch: places per batch (30 in the paper).
-        images_per_place: images per place, >= 2 (4 in the paper).
-        same_place_threshold: metres; images closer than this are the same place (25 in the paper).
-        similar_groups: number of visually similar groups drawn besides the anchor (15).
-        num_batches: number of batches.
-        seed: int seed (or a Generator that provides one).
-        num_workers: processes (``multiprocessing`` "spawn" context) when > 1; same output.
-        regions: ``(N,)`` city / region label of each image (any sortable dtype); a group must not
-            span two regions. None: one region.
-        headings: ``(N,)`` camera headings in degrees (only with ``max_heading_diff``).
-        max_heading_diff: degrees; two images are joined in the clique graph only if their headings
-            differ by at most this (None: no heading test, as published).
-
-    Returns:
-        int64 array ``(num_batches, places_per_batch, images_per_place)`` of image indices.
-
-    Raises:
-        ValueError: on bad inputs, or when a batch cannot be filled after
-            ``max(100, 10 * places_per_batch)`` anchors (too few separated places in the data).
-    """
-    if group_descriptors is None:
-        raise ValueError("group_descriptors is required: one descriptor row per group id")
-    miner = _checked_miner(utm, groups, group_descriptors, places_per_batch, images_per_place,
-                           same_place_threshold, similar_groups, regions, headings, max_heading_diff)
-    return miner.mine(check_int(num_batches, "num_batches"), seed, check_int(num_workers, "num_workers"))
-
-
-def sample_group_descriptors(descriptors, groups, seed: int | np.random.Generator = 0) -> np.ndarray:
-    """One descriptor per place group: that of one random image of the group (CliqueMining's
-    ``compute_cluster_descriptors``, which samples one image per ``unique_cluster``).
-
-    Args:
-        descriptors: ``(N, D)`` image descriptors.
-        groups: ``(N,)`` non-negative group id of each image.
-        seed: int seed or Generator choosing the image of each group.
-
-    Returns:
-        float32 ``(max(groups) + 1, D)``; rows of ids without images are zero.
-    """
-    desc = as_float_matrix(descriptors, "descriptors")
-    present, pick, num = _one_image_per_group(_as_groups(groups, len(desc)), seed)
-    out = np.zeros((num, desc.shape[1]), dtype=np.float32)
-    out[present] = desc[pick]
-    return out
-
-
-def _one_image_per_group(groups: np.ndarray, seed) -> tuple[np.ndarray, np.ndarray, int]:
-    """(ids of the non-empty groups, one random image index of each, number of group ids)."""
-    rng = _as_rng(seed)
-    order, starts = _group_index(groups)
-    sizes = np.diff(starts)
-    present = np.flatnonzero(sizes > 0)
-    pick = order[starts[present] + (rng.random(len(present)) * sizes[present]).astype(np.int64)].astype(np.int64)
-    return present, pick, len(sizes)
-
-
-class CliqueBatchMaker:
-    """``make_batches(model, epoch, rng)`` for :class:`vpr_nb.training.PlaceBatchSource` with CliqueMining.
-
-    The per-region index of :func:`clique_batches` is built once, here. The group descriptors are
-    ``group_descriptors`` when given (the original: descriptors of a pre-trained model, computed
-    once, offline), else they come from ``model`` (one random image per group, as in the original
-    code; only those images are encoded, so ``images`` may be a lazy on-disk array).
-    ``refresh_every=None`` keeps the first descriptors for the whole run (computed at the first call
-    if not given); ``refresh_every=E`` recomputes them with the current model at every epoch that is a
-    multiple of E. Each call mines ``num_batches`` fresh batches, seeded from ``rng``.
-
-    Attributes:
-        refreshed_at: epochs at which the descriptors were computed from the model.
-    """
-
-    def __init__(self, images, utm, groups, places_per_batch: int, num_batches: int, *,
-                 images_per_place: int = 4, same_place_threshold: float = 25.0, similar_groups: int = 15,
-                 refresh_every: int | None = None, num_workers: int = 1, group_descriptors=None,
-                 regions=None, headings=None, max_heading_diff: float | None = None):
-        from vpr_nb.evaluation import as_image_array
-        self.images = as_image_array(images)   # numpy, or a lazy on-disk ImageArray (only indexed images are read)
-        self.utm = as_utm(utm, "utm")
-        self.groups = _as_groups(groups, len(self.utm))
-        if len(self.images) != len(self.utm):
-            raise ValueError(f"images has {len(self.images)} entries but utm has {len(self.utm)}: one geotag per image")
-        self.num_batches = check_int(num_batches, "num_batches")
-        self.num_workers = check_int(num_workers, "num_workers")
-        self.refresh_every = None if refresh_every is None else check_int(refresh_every, "refresh_every")
-        self.miner = _checked_miner(self.utm, self.groups, group_descriptors, places_per_batch, images_per_place,
-                                    same_place_threshold, similar_groups, regions, headings, max_heading_diff)
-        self.group_descriptors: np.ndarray | None = None
-        if group_descriptors is not None:
-            self.group_descriptors = as_float_matrix(group_descriptors, "group_descriptors").copy()
-        self.refreshed_at: list[int] = []
-
-    def state_dict(self) -> dict:
-        """The group descriptors in use and the refresh epochs (for exact resume from a checkpoint)."""
-        import torch
-        d = self.group_descriptors
-        return {"group_descriptors": None if d is None else torch.from_numpy(d.copy()),
-                "refreshed_at": [int(e) for e in self.refreshed_at]}
-
-    def load_state_dict(self, state: dict) -> None:
-        d = state.get("group_descriptors")
-        self.group_descriptors = None if d is None else np.asarray(d, dtype=np.float32).copy()
-        if self.group_descriptors is not None:
-            self.miner.set_descriptors(self.group_descriptors)
-        self.refreshed_at = [int(e) for e in state.get("refreshed_at", [])]
-
-    def __call__(self, model, epoch: int, rng: np.random.Generator) -> np.ndarray:
-        from vpr_nb.evaluation import compute_descriptors
-
-        rng = _as_rng(rng)
-        due = self.refresh_every is not None and epoch % self.refresh_every == 0
-        if self.group_descriptors is None or (due and epoch not in self.refreshed_at):
-            # one random image per group (sample_group_descriptors); only those images are encoded
-            present, pick, num = _one_image_per_group(self.groups, rng)
-            desc = compute_descriptors(getattr(model, "module", model), self.images[pick])  # restores train/eval mode
-            self.group_descriptors = np.zeros((num, desc.shape[1]), dtype=np.float32)
-            self.group_descriptors[present] = desc
-            self.refreshed_at.append(int(epoch))
-        if self.miner.sqnorm is None or self._set_from is not self.group_descriptors:
-            self.miner.set_descriptors(self.group_descriptors)
-            self._set_from = self.group_descriptors
-        return self.miner.mine(self.num_batches, int(rng.integers(2**63)), self.num_workers)
-
-    _set_from = None
-
-
-def batch_statistics(batches, utm, descriptors=None) -> dict:
-    """How close and how alike the places of batches are (the point of CliqueMining).
-
-    For every batch ``(P, K)`` and every pair of its places: the distance between the place centres
-    (mean UTM of the K images) and, with ``descriptors`` (one row per image, L2-normalised), the
-    cosine similarity of the place descriptors (mean of the K image descriptors, L2-normalised).
-
-    Returns:
-        ``{"median place distance (m)": ..., "median place similarity": ... (NaN without descriptors),
-        "cities per batch": ...}`` medians over all pairs of all batches (the last key is absent).
-    """
-    b = np.asarray(batches)
-    if b.ndim == 2:
-        b = b[None]
-    if b.ndim != 3 or b.shape[1] < 2:
-        raise ValueError(f"batches must have shape (B, P, K) with P >= 2, got {b.shape}")
-    u = as_utm(utm, "utm")
-    iu = np.triu_indices(b.shape[1], 1)
-    centre = u[b].mean(axis=2)                                             # (B, P, 2)
-    dist = _dist(centre[:, :, None, :], centre[:, None, :, :])[:, iu[0], iu[1]]
-    out = {"median place distance (m)": float(np.median(dist)), "median place similarity": float("nan")}
-    if descriptors is not None:
-        x = as_float_matrix(descriptors, "descriptors")[b].mean(axis=2)    # (B, P, D)
-        x /= np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
-        sim = np.einsum("bpd,bqd->bpq", x, x)[:, iu[0], iu[1]]
-        out["median place similarity"] = float(np.median(sim))
-    return out
-
-
-# ----------------------------------------------------------------------------- random baseline
-def random_place_batches(groups, places_per_batch: int, images_per_place: int = 4, *,
-                         num_batches: int = 1, seed: int | np.random.Generator = 0) -> np.ndarray:
-    """GSV-Cities-style batches: random places, random images of each place.
-
-    Each batch draws ``places_per_batch`` distinct groups uniformly among the groups with at
-    least ``images_per_place`` images, then ``images_per_place`` distinct random images of each.
-    Unlike :func:`clique_batches` nothing keeps two places of a batch geographically apart.
-
-    Returns:
-        int64 array ``(num_batches, places_per_batch, images_per_place)`` of image indices.
-    """
-    groups = _as_groups(groups, None)
-    places_per_batch = check_int(places_per_batch, "places_per_batch")
-    images_per_place = check_int(images_per_place, "images_per_place", minimum=2)
-    num_batches = check_int(num_batches, "num_batches")
-    rng = _as_rng(seed)
-    order, starts = _group_index(groups)
-    eligible = np.flatnonzero(np.diff(starts) >= images_per_place)
-    if len(eligible) < places_per_batch:
-        raise ValueError(f"only {len(eligible)} groups have >= {images_per_place} images but a batch needs "
-                         f"{places_per_batch} distinct places; lower places_per_batch or images_per_place")
-    out = np.empty((num_batches, places_per_batch, images_per_place), dtype=np.int64)
-    for b in range(num_batches):
-        for p, g in enumerate(rng.choice(eligible, places_per_batch, replace=False)):
-            out[b, p] = rng.choice(order[starts[g]:starts[g + 1]], images_per_place, replace=False)
-    return out
