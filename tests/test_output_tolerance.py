@@ -8,6 +8,9 @@ def test_marker_is_read_and_checked():
     assert cell_tolerance("x = 1\n# NBVAL_TOLERANCE=0.02\nprint(x)") == (0.02, 0.0)
     assert cell_tolerance("# NBVAL_TOLERANCE=0.01 rel=0.05") == (0.01, 0.05)
     assert cell_tolerance("print(1)  # no marker") is None
+    assert cell_tolerance("# NBVAL_TOLERANCE=0.02   trained numbers") == (0.02, 0.0)
+    with pytest.raises(ValueError, match="cannot read"):
+        cell_tolerance("# NBVAL_TOLERANCE=two")
     with pytest.raises(ValueError, match="rel"):
         cell_tolerance("# NBVAL_TOLERANCE=0.01 rel=2")
 

@@ -20,7 +20,8 @@ from __future__ import annotations
 import math
 import re
 
-MARKER = re.compile(r"^\s*#\s*NBVAL_TOLERANCE\s*=\s*([0-9.eE+-]+)(?:\s+rel\s*=\s*([0-9.eE+-]+))?\s*$", re.M)
+# the marker line: "# NBVAL_TOLERANCE=<abs>", optionally " rel=<r>", optionally followed by a comment
+MARKER = re.compile(r"^\s*#\s*NBVAL_TOLERANCE\s*=\s*(\S+)(?:\s+rel\s*=\s*(\S+))?(?:\s.*)?$", re.M)
 # a decimal number: optional sign, digits, a point, digits, optional exponent (integers are not matched)
 _DECIMAL = re.compile(r"(?<![\w.])[-+−]?\d+\.\d+(?:[eE][-+]?\d+)?(?![\w.])")
 
