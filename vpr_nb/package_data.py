@@ -34,14 +34,16 @@ def checkout_root() -> Path | None:
     return None
 
 
-def _package_path(package: str, name: str) -> Path:
-    # installed wheels and checkouts are plain folders (never zip imports), so the resource is a real path
-    return Path(str(resources.files(package).joinpath(name)))
+def _package_path(*parts: str) -> Path:
+    # resolved from vpr_nb itself, a regular package (vpr_nb.committed_results has no __init__.py, and
+    # files() of such a namespace package is not a path); installed wheels and clones are plain folders
+    # (never zip imports), so the resource is a real path
+    return Path(str(resources.files("vpr_nb").joinpath(*parts)))
 
 
 def course_backbone_path() -> Path:
     """The committed course-backbone checkpoint (its card ``course_backbone.json`` lies beside it)."""
-    return _package_path("vpr_nb.weights", "course_backbone.pt")
+    return _package_path("weights", "course_backbone.pt")
 
 
 def committed_results_dir() -> Path:
@@ -52,7 +54,7 @@ def committed_results_dir() -> Path:
     root = checkout_root()
     if root is not None:
         return root / "notebooks" / "results"
-    return Path(str(resources.files("vpr_nb.committed_results")))
+    return _package_path("committed_results")
 
 
 def results_dir_for_writing() -> Path:
