@@ -5,6 +5,8 @@ import sys
 import tomllib
 from pathlib import Path
 
+import pytest
+
 import vpr_nb
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,3 +82,18 @@ def test_python_m_vpr_nb_lists_the_commands(capsys):
     out = capsys.readouterr().out
     assert all(f"python -m {m}" in out for _, m, _ in COMMANDS) and "vpr-train" in out
     assert main(["train"]) == 2 and capsys.readouterr().err.startswith("error: ")
+
+
+def test_results_are_read_and_written_where_package_data_says(tmp_path, monkeypatch):
+    from vpr_nb import package_data, results
+    assert package_data.checkout_root() == ROOT                      # the tests run from the clone
+    assert package_data.committed_results_dir() == package_data.results_dir_for_writing() == ROOT / "notebooks" / "results"
+    assert package_data.course_backbone_path() == ROOT / "vpr_nb" / "weights" / "course_backbone.pt"
+    monkeypatch.setenv(package_data.RESULTS_DIR_ENV, str(tmp_path))
+    assert results.save("99_demo", {"epochs": 1}, {"R@1": 0.5}) == tmp_path / "99_demo.json"
+    assert results.load("99_demo", {"epochs": 1})["results"] == {"R@1": 0.5}
+    monkeypatch.delenv(package_data.RESULTS_DIR_ENV)
+    monkeypatch.setattr(package_data, "checkout_root", lambda: None)  # as installed from a wheel
+    with pytest.raises(ValueError, match="VPR_NB_RESULTS_DIR"):
+        results.save("99_demo", {"epochs": 1}, {"R@1": 0.5})
+    assert package_data.committed_results_dir() == ROOT / "vpr_nb" / "committed_results"   # the installed copy's place

@@ -17,9 +17,8 @@ COMMANDS = (
 def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     if args and args[0] not in ("-h", "--help"):
-        print(f"error: python -m vpr_nb takes no arguments (got {' '.join(args)}); `python -m vpr_nb` "
-              f"lists the commands",
-              file=sys.stderr)
+        print(f"error: python -m vpr_nb takes no arguments (got {' '.join(args)}); run it alone for the list "
+              f"of commands", file=sys.stderr)
         return 2
     from . import __version__
     print(f"vpr_nb {__version__}: the commands of the vpr-notebooks course (each has --help)")
