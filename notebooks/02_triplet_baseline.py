@@ -10,7 +10,7 @@
 #       format_version: '1.3'
 #       jupytext_version: 1.19.6
 #   kernelspec:
-#     display_name: Python 3
+#     display_name: Python 3 (ipykernel)
 #     language: python
 #     name: python3
 # ---
@@ -333,7 +333,7 @@ plt.show()
 # wider SmallCNN (48 channels) pretrained once with the Multi-Similarity loss on other synthetic worlds
 # (world seeds ≥ 100, both presets, all conditions; never this world), the course's stand-in for the
 # ImageNet-VGG16 of DW-T-Loss and the DINOv2 of SALAD. `python -m vpr_nb.pretrain` re-makes it; its card
-# (`data_fixtures/course_backbone.json`) records how. Notebooks 03–07 start from it, as the papers start
+# (`vpr_nb/weights/course_backbone.json`) records how. Notebooks 03–07 start from it, as the papers start
 # from theirs.
 
 # %%

@@ -399,15 +399,39 @@ def _record_steps(world, src, cfg):
             "weights": weights.hexdigest()[:16]}
 
 
+# Off the recording platform: the largest relative difference allowed for any loss, cosine or lr. Seen: up to
+# 2.3e-6 (torch 2.13.0, AVX-512 kernels) and 3.0e-4 for CE-Loss's steps (torch 2.14.1, Python 3.13); others <= 2.3e-6.
+PLATFORM_REL_TOL = 1e-3
+
+
+def _assert_close_to_recording(got, want, name, rel=PLATFORM_REL_TOL):
+    """Every per-step [loss, collapsed loss] and every epoch's [loss, collapsed loss, mean cosine, lr]
+    within ``rel`` (relative) of the recording; the recalls and the weights' hash are not compared."""
+    for part, g, w in (("steps", got["steps"], want["steps"]),
+                       ("history", [e[:4] for e in got["history"]], [e[:4] for e in want["history"]])):
+        g, w = np.asarray(g, dtype=float), np.asarray(w, dtype=float)
+        assert g.shape == w.shape, f"{name}: {part} has shape {g.shape}, the recording {w.shape}"
+        worst = float(np.max(np.abs(g - w) / np.maximum(np.abs(w), 1e-12)))
+        assert worst <= rel, f"{name}: {part} differ from the recording by up to {worst:.1e} (relative), over {rel:.0e}"
+
+
 @pytest.mark.parametrize("name", list(GOLDEN))
 def test_per_step_losses_are_unchanged(world, one_thread, name):
     got, want = _record_steps(world, *_pinned_source(world, name)), GOLDEN[name]
     if _exact_platform():
         assert got == want, f"{name}: per-step losses, history or weights differ from the recording"
-    else:
-        assert np.ravel(got["steps"]) == pytest.approx(np.ravel(want["steps"]), rel=1e-4)
-        assert np.ravel([e[:4] for e in got["history"]]) == pytest.approx(np.ravel([e[:4] for e in want["history"]]),
-                                                                          rel=1e-4)
+    _assert_close_to_recording(got, want, name)       # the check every other platform gets: run it here too
+
+
+def test_the_platform_tolerance_check_can_fail():
+    want = GOLDEN["ms"]
+    _assert_close_to_recording(want, want, "ms")
+    off = {**want, "steps": [[a * (1 + 3 * PLATFORM_REL_TOL), b] for a, b in want["steps"]]}
+    with pytest.raises(AssertionError, match=f"steps differ from the recording by up to {3 * PLATFORM_REL_TOL:.1e}"):
+        _assert_close_to_recording(off, want, "ms")
+    short = {**want, "history": want["history"][:1]}
+    with pytest.raises(AssertionError, match="history has shape"):
+        _assert_close_to_recording(short, want, "ms")
 
 
 def test_config_registry_builds_the_pinned_loss_objects(world):

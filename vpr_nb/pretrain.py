@@ -8,7 +8,7 @@ corpus that is **disjoint from every world a notebook evaluates on** (world seed
 database and query images of every split, with a generic objective: the Multi-Similarity loss
 (Wang et al., CVPR 2019) over P places × K images, places being 30 m of street × 4 view directions.
 
-    python -m vpr_nb.pretrain --out data_fixtures/course_backbone.pt      # the committed checkpoint
+    python -m vpr_nb.pretrain                                             # the committed checkpoint (vpr_nb/weights/)
     python -m vpr_nb.pretrain --profile quick --out /tmp/cb.pt            # a 20-second smoke run
 
 writes a weights-only half-precision state dict and a JSON beside it (command, config, sha256, torch
@@ -32,8 +32,9 @@ import torch
 
 from ._checks import check_int
 from .models import SmallCNN
+from .package_data import checkout_root, course_backbone_path
 
-CHECKPOINT = Path(__file__).resolve().parents[1] / "data_fixtures" / "course_backbone.pt"
+CHECKPOINT = course_backbone_path()    # vpr_nb/weights/course_backbone.pt, package data (installed with vpr_nb)
 CORPUS_SEED_BASE = 100        # corpus worlds use seeds >= 100; notebooks use seeds 0-4
 HELD_OUT = (("city", 0, "test"), ("route", 0, "test"), ("city", 97, "test"))  # never trained on
 SELECTION_WORLD = ("city", 98, "val")    # best epoch chosen here, never on a reported world
@@ -222,7 +223,7 @@ def course_backbone(path=CHECKPOINT, trainable_blocks: int = 0, final_relu: bool
         raise ValueError(f"final_relu must be True or False, got {final_relu!r}")
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"no course backbone at {path}; it is committed in data_fixtures/ or "
+        raise FileNotFoundError(f"no course backbone at {path}; it ships with vpr_nb (vpr_nb/weights/) or is "
                                 f"re-made with `python -m vpr_nb.pretrain --out {path}`")
     meta = card(path)
     if _sha256(path) != meta["sha256"]:
@@ -245,10 +246,16 @@ def _read_backbone(path: Path, width: int, out_channels: int) -> SmallCNN:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m vpr_nb.pretrain", description=__doc__.split("\n\n")[0])
     parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
-    parser.add_argument("--out", default=str(CHECKPOINT), help="checkpoint path (a .json card is written beside it)")
+    parser.add_argument("--out", default=None, help="checkpoint path (a .json card is written beside it); default: the "
+                        "committed vpr_nb/weights/course_backbone.pt of the clone vpr_nb runs from")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help=f"override a PretrainConfig field ({', '.join(f.name for f in fields(PretrainConfig))})")
     args = parser.parse_args(argv)
+    if args.out is None:
+        if checkout_root() is None:
+            parser.error("--out is required: this vpr_nb is installed, not run from a clone of the course, and the "
+                         "installed course backbone is not overwritten")
+        args.out = str(CHECKPOINT)
     kw = dict(PROFILES[args.profile])
     known = {f.name: f for f in fields(PretrainConfig)}
     for item in args.set:

@@ -18,7 +18,7 @@ import math
 from collections.abc import Mapping
 from pathlib import Path
 
-RESULTS_DIR = Path(__file__).resolve().parents[1] / "notebooks" / "results"
+from .package_data import committed_results_dir, results_dir_for_writing
 
 
 def _canonical(value):
@@ -45,10 +45,12 @@ def backbone_fingerprint(path=None) -> str:
     return h.hexdigest()
 
 
-def _path(name: str, results_dir) -> Path:
+def _path(name: str, results_dir, *, write: bool = False) -> Path:
     if not isinstance(name, str) or not name or "/" in name:
         raise ValueError(f"name must be a notebook stem such as '03_distance_ranking_weighted_loss', got {name!r}")
-    return Path(results_dir if results_dir is not None else RESULTS_DIR) / f"{name}.json"
+    if results_dir is None:     # notebooks/results/ of the clone, or the copy installed with vpr_nb (package_data)
+        results_dir = results_dir_for_writing() if write else committed_results_dir()
+    return Path(results_dir) / f"{name}.json"
 
 
 def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> Path:
@@ -58,7 +60,7 @@ def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> P
 
     if not isinstance(config, Mapping) or not isinstance(results, Mapping):
         raise ValueError("config and results must be dicts (the experiment's settings and its tables)")
-    path = _path(name, results_dir)
+    path = _path(name, results_dir, write=True)
     stamp = environment_header("reproduce")
     stamp["date"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d")
     doc = {"notebook": name, "stamp": stamp, "course_backbone": backbone_fingerprint(),
@@ -89,7 +91,7 @@ def load(name: str, config: Mapping, *, results_dir=None) -> dict:
                          f"{[want.get(k) for k in keys]}); re-run the notebook with PROFILE = 'reproduce' and commit")
     if doc.get("course_backbone") != backbone_fingerprint():
         raise ValueError(f"notebooks/results/{path.name} is stale: it was computed with other course-backbone "
-                         f"weights than data_fixtures/course_backbone.pt holds now; re-run the notebook with "
+                         f"weights than vpr_nb/weights/course_backbone.pt holds now; re-run the notebook with "
                          f"PROFILE = 'reproduce' and commit")
     return doc
 
