@@ -27,6 +27,7 @@ stale silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "re
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import math
@@ -65,14 +66,15 @@ def world_fingerprints(config: Mapping) -> dict[str, dict]:
     (key ``"world"``) and each ``config["worlds"][name]`` (key ``"worlds.<name>"``), every one a dict with
     ``preset``, optional ``size`` and ``overrides`` (other entries, such as the seed, are the
     experiment's and stay in ``config``). Unknown presets or options raise ValueError."""
-    import dataclasses
-
     from .synthetic import make_config
 
     specs = {}
     if isinstance(config.get("world"), Mapping):
         specs["world"] = config["world"]
-    for name, spec in (config.get("worlds") or {}).items():
+    worlds = config.get("worlds") or {}
+    if not isinstance(worlds, Mapping):
+        raise ValueError(f"config['worlds'] must be a dict {{name: world}}, got {type(worlds).__name__}")
+    for name, spec in worlds.items():
         specs[f"worlds.{name}"] = spec
     out = {}
     for key, spec in specs.items():
