@@ -95,7 +95,7 @@ notebook: venv
 	$(BIN)/python -m vpr_nb.authoring $(foreach n,$(NB),$(wildcard notebooks/$(n)_*.ipynb))
 
 test-fast: dev
-	$(BIN)/python -m pytest -p no:cacheprovider -q tests
+	$(BIN)/python -m pytest -p no:cacheprovider -q tests -m "not slow"
 
 reproduce: venv
 	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports

@@ -98,6 +98,7 @@ def test_student_version_strips_solutions_hidden_tests_and_locks_read_only_cells
     assert two.cells[0].metadata["editable"] is False and two.cells[0].metadata["deletable"] is False
 
 
+@pytest.mark.slow
 def test_grades_instructor_full_student_zero_pasted_back_full(tmp_path):
     src = _tiny(tmp_path)
     assert [g.points for g in grade(src, src)] == [2.0]
@@ -113,6 +114,7 @@ def test_grades_instructor_full_student_zero_pasted_back_full(tmp_path):
     assert "square(3): expected 9, got 9" not in got[0].error and "expected 4, got 6" in got[0].error, got[0].error
 
 
+@pytest.mark.slow
 def test_only_dependency_cells_run_and_deleted_or_edited_tests_change_nothing(tmp_path):
     src = _two(tmp_path)
     assert [(g.grade_id, g.points) for g in grade(src, src)] == [("ex-square-tests", 2.0), ("ex-cube-tests", 1.0)]
@@ -134,6 +136,7 @@ def test_feedback_names_expected_and_got_per_exercise(tmp_path, capsys):
     assert "square(3): expected 9, got 6" in out and "ex-cube-tests" in out and "total" in out and "1 / 3" in out
 
 
+@pytest.mark.slow
 def test_endless_loop_times_out_and_the_other_exercise_is_graded(tmp_path):
     src = _two(tmp_path)
     stu = student_version(nbformat.read(src, as_version=4))
@@ -143,6 +146,7 @@ def test_endless_loop_times_out_and_the_other_exercise_is_graded(tmp_path):
     assert got[1].points == 0.0 and "timed out after 3 s" in got[1].error, got[1].error
 
 
+@pytest.mark.slow
 def test_dead_kernel_scores_zero_and_the_next_exercise_gets_a_fresh_kernel(tmp_path):
     src = _two(tmp_path)
     stu = student_version(nbformat.read(src, as_version=4))
@@ -162,6 +166,7 @@ def test_missing_solution_cell_scores_zero_with_the_reason(tmp_path):
     assert got[0].points == 2.0 and got[1].points == 0.0 and "missing" in got[1].error
 
 
+@pytest.mark.slow
 def test_grade_class_writes_a_csv_per_student_and_exercise(tmp_path, capsys):
     src = _two(tmp_path)
     stu = student_version(nbformat.read(src, as_version=4))

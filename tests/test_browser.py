@@ -244,6 +244,7 @@ def _click_menu(page, menu: str, item: str, timeout_ms: float) -> None:
     page.locator(f'.lm-Menu .lm-Menu-itemLabel:text-is("{item}")').first.click(timeout=timeout_ms)
 
 
+@pytest.mark.slow
 def test_weight_explorer_reacts_in_jupyterlab(lab_server, tmp_path, record_property):
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright

@@ -23,6 +23,7 @@ def quick_run(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_pretrain_command_writes_checkpoint_and_card(quick_run):
     card = json.loads(quick_run.with_suffix(".json").read_text())
     assert card["sha256"] == pretrain._sha256(quick_run)
@@ -35,12 +36,14 @@ def test_pretrain_command_writes_checkpoint_and_card(quick_run):
     assert backbone.out_channels == card["config"]["out_channels"]
 
 
+@pytest.mark.slow
 def test_pretrain_is_deterministic(quick_run, tmp_path):
     out = tmp_path / "cb.pt"             # same file name: torch.save stores it in the archive
     pretrain.main(["--profile", "quick", "--out", str(out)])
     assert pretrain._sha256(out) == pretrain._sha256(quick_run)
 
 
+@pytest.mark.slow
 def test_course_backbone_refuses_a_changed_file(quick_run, tmp_path):
     bad = tmp_path / "cb.pt"
     bad.write_bytes(quick_run.read_bytes()[:-10] + b"0123456789")
@@ -54,6 +57,7 @@ def test_course_backbone_refuses_a_changed_file(quick_run, tmp_path):
         pretrain.course_backbone(tmp_path / "lonely.pt")
 
 
+@pytest.mark.slow
 def test_committed_checkpoint_is_small_and_keeps_its_recall():
     """Frozen + GeM on a world seed it never saw: at least what its card records (minus 0.01)."""
     card = pretrain.card()

@@ -100,6 +100,7 @@ def _write_nb(path, cells):
     nbformat.write(nb, path)
 
 
+@pytest.mark.slow
 def test_runner_end_to_end(tmp_path, monkeypatch):
     monkeypatch.delenv(RESULTS_ENV, raising=False)
     monkeypatch.setenv("MPLBACKEND", "Agg")  # as in .ci/run: the runner must still get inline PNGs

@@ -1,6 +1,7 @@
 """Tests for vpr_nb.results: committed reproduce-profile results and their staleness check."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -9,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from vpr_nb import results
+from vpr_nb.synthetic import CONDITIONS, WORLD_KINDS, make_config
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 
@@ -85,3 +87,79 @@ def test_print_table(capsys):
         results.print_table({"A": {"R@1": "1"}, "B": {}}, "t")
     with pytest.raises(ValueError, match="non-empty"):
         results.print_table({}, "t")
+
+
+# ------------------------------------------------------------------- keys: world and backbone fingerprints
+WORLD_CFG = {"world": {"preset": "city", "seed": 0, "size": "tiny"}, "epochs": 1}
+
+
+def test_fresh_when_neither_world_nor_backbone_changed(tmp_path):
+    path = results.save("99_demo", WORLD_CFG, {"x": 1}, results_dir=tmp_path)
+    doc = results.load("99_demo", WORLD_CFG, results_dir=tmp_path)
+    assert doc["worlds"]["world"]["world"] == "city-tiny"
+    assert doc["worlds"]["world"]["fingerprint"] == make_config("city").fingerprint()
+    assert json.loads(path.read_text())["worlds"] == results.world_fingerprints(WORLD_CFG)
+
+
+def test_stale_when_a_world_default_changes(tmp_path, monkeypatch):
+    results.save("99_demo", WORLD_CFG, {"x": 1}, results_dir=tmp_path)
+    # a kind's default moves (its record's deviations): the file names the field, old and new value
+    city = WORLD_KINDS["city"]
+    monkeypatch.setitem(WORLD_KINDS, "city", dataclasses.replace(city, preset={"building_height": (6.0, 30.0)}))
+    with pytest.raises(ValueError, match=r"another synthetic world.*\['building_height'\].*\[6\.0, 26\.0\].*\[6\.0, 30\.0\]"
+                                         r".*PROFILE = 'reproduce'"):
+        results.load("99_demo", WORLD_CFG, results_dir=tmp_path)
+
+
+def test_stale_when_a_worldconfig_default_changed_since_saving(tmp_path):
+    # a file saved while WorldConfig.fov defaulted to 80: today's default (90) makes it stale
+    path = results.save("99_demo", WORLD_CFG, {"x": 1}, results_dir=tmp_path)
+    doc = json.loads(path.read_text())
+    old = dataclasses.replace(make_config("city"), fov=80.0)
+    doc["worlds"]["world"] = {"fingerprint": old.fingerprint(), "world": "city-tiny",
+                              "config": json.loads(json.dumps(dataclasses.asdict(old)))}
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"WorldConfig field\(s\) \['fov'\] \(committed \[80\.0\], now \[90\.0\]\)"):
+        results.load("99_demo", WORLD_CFG, results_dir=tmp_path)
+    del doc["worlds"]                                    # a file from before worlds were fingerprinted
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="no fingerprint of the synthetic world"):
+        results.load("99_demo", WORLD_CFG, results_dir=tmp_path)
+
+
+def test_stale_when_a_condition_row_changes(tmp_path, monkeypatch):
+    results.save("99_demo", WORLD_CFG, {"x": 1}, results_dir=tmp_path)
+    monkeypatch.setitem(CONDITIONS, "rain", dict(CONDITIONS["rain"], fog=70.0))
+    with pytest.raises(ValueError, match="condition rows"):
+        results.load("99_demo", WORLD_CFG, results_dir=tmp_path)
+
+
+def test_stale_when_the_backbone_file_changes(tmp_path, monkeypatch):
+    import torch
+    from vpr_nb import pretrain
+    results.save("99_demo", WORLD_CFG, {"x": 1}, results_dir=tmp_path)
+    state = torch.load(pretrain.CHECKPOINT, weights_only=True)
+    state[next(iter(state))].view(-1)[0] += 1
+    torch.save(state, tmp_path / "retrained.pt")
+    monkeypatch.setattr(pretrain, "CHECKPOINT", tmp_path / "retrained.pt")
+    with pytest.raises(ValueError, match="other course-backbone weights"):
+        results.load("99_demo", WORLD_CFG, results_dir=tmp_path)
+
+
+def test_world_specs_are_validated_and_several_worlds_are_keyed():
+    cfg = {"worlds": {"a": {"preset": "route", "overrides": {"frame_spacing": 2.5}}, "b": {"preset": "city"}}}
+    got = results.world_fingerprints(cfg)
+    assert sorted(got) == ["worlds.a", "worlds.b"] and got["worlds.a"]["config"]["frame_spacing"] == 2.5
+    assert got["worlds.a"]["fingerprint"] != results.world_fingerprints({"worlds": {"a": {"preset": "route"}}})["worlds.a"]["fingerprint"]
+    assert results.world_fingerprints({"epochs": 1}) == {}
+    with pytest.raises(ValueError, match="unknown preset"):
+        results.world_fingerprints({"world": {"preset": "desert"}})
+    with pytest.raises(ValueError, match="'preset'"):
+        results.world_fingerprints({"worlds": {"a": "city"}})
+
+
+def test_committed_results_match_todays_worlds():
+    """The committed files' world fingerprints are today's: the notebooks' results.load accepts them."""
+    for path in sorted((NOTEBOOKS / "results").glob("*.json")):
+        doc = json.loads(path.read_text())
+        assert doc.get("worlds") == results.world_fingerprints(doc["config"]), f"{path.name}: stale world fingerprint"

@@ -74,6 +74,7 @@ def test_clique_deterministic_per_seed(world):
     np.testing.assert_array_equal(g1, g2)
 
 
+@pytest.mark.slow
 def test_clique_parallel_equals_serial(world):
     utm, groups, desc = world
     serial = clique_batches(utm, groups, desc, 10, num_batches=6, seed=3)

@@ -1,15 +1,18 @@
-"""Tests of the synthetic VPR world (vpr_nb.synthetic): determinism, shapes, splits, positives, bad input.
+"""Tests of the synthetic VPR world (vpr_nb.synthetic): determinism, shapes, splits, positives, bad input,
+world kinds as records, the config's fingerprint, pinned pixels.
 
 Worlds are kept small (few blocks / frames, 8×12-pixel images where pixels do not matter) so the
 whole file runs in a few seconds.
 """
+import dataclasses
 import hashlib
 
 import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from vpr_nb.synthetic import SPLITS, VPRDataset, WorldConfig, make_config, make_dataset
+from vpr_nb.synthetic import (CONDITIONS, SPLITS, WORLD_KINDS, VPRDataset, WorldConfig, make_config, make_dataset,
+                               world_kind)
 
 SMALL_CITY = dict(blocks=(5, 2))          # 5 blocks so that every split (incl. val) is non-empty
 SMALL_ROUTE = dict(num_frames=120)
@@ -29,8 +32,8 @@ def route():
 # ------------------------------------------------------------------------------------- determinism
 @pytest.mark.parametrize("preset, overrides", [("city", dict(blocks=(3, 2))), ("route", SMALL_ROUTE)])
 def test_same_seed_gives_identical_arrays(preset, overrides):
-    a = make_dataset(preset, seed=3, **overrides)
-    b = make_dataset(preset, seed=3, **overrides)
+    a = make_dataset(preset, seed=3, image_size=(16, 24), **overrides)
+    b = make_dataset(preset, seed=3, image_size=(16, 24), **overrides)
     for name in ("db_images", "q_images", "db_utm", "q_utm", "db_heading", "q_heading",
                  "db_condition", "q_condition", "db_split", "q_split", "db_place", "q_place"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
@@ -38,8 +41,8 @@ def test_same_seed_gives_identical_arrays(preset, overrides):
 
 @pytest.mark.parametrize("preset, overrides", [("city", dict(blocks=(3, 2))), ("route", SMALL_ROUTE)])
 def test_different_seed_gives_different_world(preset, overrides):
-    a = make_dataset(preset, seed=0, **overrides)
-    b = make_dataset(preset, seed=1, **overrides)
+    a = make_dataset(preset, seed=0, image_size=(16, 24), **overrides)
+    b = make_dataset(preset, seed=1, image_size=(16, 24), **overrides)
 
     def differs(x, y):  # counts may differ too (cameras near the split gaps), compare the overlap
         m = min(len(x), len(y))
@@ -52,8 +55,8 @@ def test_different_seed_gives_different_world(preset, overrides):
         assert not np.allclose(a.db_utm[:m], b.db_utm[:m])
 
 
-def test_rendering_one_split_matches_rendering_all():
-    full = make_dataset("city", seed=0, **SMALL_CITY).test
+def test_rendering_one_split_matches_rendering_all(city):
+    full = city.test
     only = make_dataset("city", seed=0, splits=("test",), **SMALL_CITY).test
     np.testing.assert_array_equal(full.db_images, only.db_images)
     np.testing.assert_array_equal(full.q_images, only.q_images)
@@ -167,6 +170,15 @@ def test_route_conditions_summer_vs_winter(route):
     (dict(seed=1.5), "seed"),
     (dict(splits=("train", "holdout")), "splits"),
     (dict(splits=()), "splits"),
+    (dict(building_height=(26.0, 6.0)), "building_height"),
+    (dict(tree_radius=(1.0,)), "tree_radius"),
+    (dict(car_share=1.5), "car_share"),
+    (dict(headings=0), "headings"),
+    (dict(sky_radius=0.0), "sky_radius"),
+    (dict(zone_house_share=(0.1, 0.2)), "zone tables"),
+    (dict(zone_fence_share=(0.0, 1.5, 0.0)), "zone shares"),
+    (dict(preset="route", track_smoothing=500), "track_smoothing"),
+    (dict(preset="route", size="huge"), "unknown size"),
 ])
 def test_make_dataset_rejects_bad_input(kwargs, match):
     kwargs = {"preset": "city", **kwargs}
@@ -204,8 +216,9 @@ def test_few_facade_types_render(preset):
 
 # ------------------------------------------------------------------------------ pixels, pinned
 # sha256 of db_images + q_images, recorded with the renderer as it was before it was split into stages
-# (vpr_nb.synthetic._render, issue 14). Every notebook number depends on these pixels: a change of the
-# renderer that changes a single bit must be deliberate, and then re-record the hash here.
+# (vpr_nb.synthetic.render._render, issue 14). Every notebook number depends on these pixels: a change of
+# the renderer that changes a single bit must be deliberate, and then re-record the hash here and re-run
+# the reproduce profile (the committed results are keyed on the world config, not on rendering constants).
 PINNED_WORLDS = {
     # every city query condition (overcast, dusk: lit windows, autumn, winter: snow, rain); walls and trees
     "city": (dict(seed=5, blocks=(3, 2), image_size=(24, 32)),
@@ -226,4 +239,85 @@ def test_rendered_pixels_are_pinned(preset):
     digest = hashlib.sha256(np.ascontiguousarray(ds.db_images).tobytes()
                             + np.ascontiguousarray(ds.q_images).tobytes()).hexdigest()
     assert digest == expected, (f"the {preset} world renders other pixels than the pinned ones "
-                                f"(sha256 {digest}, pinned {expected}): if that is deliberate, re-record the hash")
+                                f"(sha256 {digest}, pinned {expected}): if that is deliberate, re-record the hash "
+                                f"and re-run the reproduce profile (make reproduce)")
+
+
+# ------------------------------------------------------------------------------- world kinds, records
+def test_world_kinds_are_records_with_their_own_fields():
+    names = {f.name for f in dataclasses.fields(WorldConfig)}
+    seen = set()
+    for name, kind in WORLD_KINDS.items():
+        assert kind.name == name and world_kind(name) is kind
+        assert kind.fields <= names, f"{name}: fields that WorldConfig lacks: {sorted(kind.fields - names)}"
+        assert not kind.fields & seen, f"{name} claims fields of another kind: {sorted(kind.fields & seen)}"
+        seen |= kind.fields
+        assert set(kind.preset) <= names and all(set(v) <= names for v in kind.sizes.values())
+        assert "tiny" in kind.sizes
+        assert make_config(name).preset == name
+    with pytest.raises(ValueError, match="unknown preset"):
+        world_kind("desert")
+
+
+def _changed(v):
+    """Another valid value of a knob: integers + 1, floats x 0.8 (ranges keep low <= high, shares stay shares)."""
+    if isinstance(v, tuple):
+        return tuple(_changed(x) for x in v)
+    return v + 1 if isinstance(v, int) else v * 0.8
+
+
+def _other_kinds_fields(preset: str) -> dict:
+    """Every field that only the other kinds read, set to another valid value."""
+    cfg = make_config(preset)
+    return {f: _changed(getattr(cfg, f)) for kind in WORLD_KINDS.values() if kind.name != preset for f in kind.fields}
+
+
+@pytest.mark.parametrize("preset, overrides", [("city", dict(blocks=(3, 2))), ("route", SMALL_ROUTE)])
+def test_a_kind_ignores_the_fields_of_the_other_kinds(preset, overrides):
+    """What a record's ``fields`` says: the other kinds' knobs change nothing in this kind's world."""
+    other = {k: v for k, v in _other_kinds_fields(preset).items() if k not in overrides}
+    assert other, "the other kinds have own fields"
+    a = make_dataset(preset, seed=2, **overrides, **GEOMETRY_ONLY)
+    b = make_dataset(preset, seed=2, **overrides, **GEOMETRY_ONLY, **other)
+    for name in ("db_images", "q_images", "db_utm", "q_utm", "db_heading", "q_heading", "db_split", "q_split",
+                 "db_place", "q_place"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    np.testing.assert_array_equal(a.extra["scene"].a, b.extra["scene"].a)
+
+
+def test_a_new_world_kind_is_a_record_and_one_registry_line(monkeypatch):
+    """A kind reusing the city's layout with its own deviations: registering the record is all it takes."""
+    city = WORLD_KINDS["city"]
+    suburb = dataclasses.replace(city, name="suburb", preset={"building_height": (4.0, 7.0), "street_tree_share": 0.9},
+                                 sizes={"tiny": {"blocks": (3, 2)}})
+    monkeypatch.setitem(WORLD_KINDS, "suburb", suburb)
+    ds = make_dataset("suburb", seed=1, **GEOMETRY_ONLY)
+    cfg = ds.config
+    assert ds.name == "suburb-tiny" and cfg.preset == "suburb" and cfg.building_height == (4.0, 7.0)
+    walls = ds.extra["scene"].kind == 0
+    assert ds.extra["scene"].z1[walls].max() <= 7.0
+    ref = make_dataset("city", seed=1, blocks=(3, 2), **GEOMETRY_ONLY)
+    assert (ds.extra["scene"].kind == 1).sum() > (ref.extra["scene"].kind == 1).sum()   # more street trees
+    np.testing.assert_array_equal(ds.db_utm, ref.db_utm)                                  # same street grid
+
+
+def test_route_preset_and_sizes_come_from_its_record():
+    route = WORLD_KINDS["route"]
+    cfg = make_config("route", "small")
+    assert cfg.num_frames == route.sizes["small"]["num_frames"] and cfg.query_conditions == ("winter",)
+    assert cfg.pos_radius == pytest.approx(route.pos_radius_frames * cfg.frame_spacing) == cfg.train_pos_radius
+    assert make_config("route", frame_spacing=2.5).pos_radius == pytest.approx(1.01 * 2.5)
+    assert make_config("route", pos_radius=30.0).pos_radius == 30.0
+    assert make_config("city", "small").blocks == WORLD_KINDS["city"].sizes["small"]["blocks"]
+
+
+def test_fingerprint_follows_every_field_and_the_condition_rows(monkeypatch):
+    base = make_config("city")
+    assert base.fingerprint() == make_config("city").fingerprint()
+    assert base.fingerprint() != make_config("route").fingerprint()
+    for f in ("fov", "building_height", "car_share", "house_every", "zone_fence_share"):
+        assert dataclasses.replace(base, **{f: _changed(getattr(base, f))}).fingerprint() != base.fingerprint(), f
+    assert base.fingerprint() != make_config("city", query_conditions=("winter",)).fingerprint()
+    city, route = base.fingerprint(), make_config("route").fingerprint()
+    monkeypatch.setitem(CONDITIONS, "dusk", dict(CONDITIONS["dusk"], lit=0.5))   # a row the city uses, the route not
+    assert base.fingerprint() != city and make_config("route").fingerprint() == route

@@ -175,6 +175,7 @@ PAPER_STEPS = {   # (sizes of the real data, expected optimiser steps of the pap
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(PRESETS))
 def test_each_preset_builds_its_model_and_counts_its_steps(name, dinov2):
     cfg = C.resolve(name)
@@ -209,6 +210,7 @@ def _pitts_sets():
             "--set", "data.image_check_workers=1", "--no-progress"]
 
 
+@pytest.mark.slow
 def test_dwt_pitts30k_end_to_end_on_fixtures(tmp_path):
     out = tmp_path / "dwt"
     assert main(["--preset", "dwt-pitts30k", "--out", str(out)] + _pitts_sets()) == 0
@@ -340,6 +342,7 @@ def test_evaluate_needs_only_the_test_data(tmp_path, capsys):
     assert res["data"]["nordland_protocol"] == "25m" and res["num_queries"] == 4
 
 
+@pytest.mark.slow
 def test_evaluate_a_run_and_another_dataset(tmp_path):
     from vpr_nb.evaluate import main as evaluate_main
     _run(SMALL[:-5] + ["--set", "train.epochs=1", "--no-progress"], tmp_path / "run")
@@ -384,6 +387,7 @@ def test_place_samplers_train(sampler):
         E.build_source(C.with_overrides(cfg, ["source.sampler=clique+random"]), ds.train)
 
 
+@pytest.mark.slow
 def test_cliquemining_run_resumes_exactly(tmp_path):
     from vpr_nb import seed_everything
     from vpr_nb.models import build_model

@@ -37,6 +37,7 @@ def _same_weights(a, b):
     return all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
 
 
+@pytest.mark.slow
 def test_training_is_deterministic_and_learns(world):
     m1, h1 = _run(world)
     m2, h2 = _run(world)
@@ -47,6 +48,7 @@ def test_training_is_deterministic_and_learns(world):
     assert all(np.isfinite(h1.losses))
 
 
+@pytest.mark.slow
 def test_interrupted_run_resumes_to_the_same_weights(world, tmp_path):
     full, hist_full = _run(world)
     _, partial = _run(world, tmp_path, stop_after=1)
@@ -57,12 +59,14 @@ def test_interrupted_run_resumes_to_the_same_weights(world, tmp_path):
     assert hist.recalls(1) == hist_full.recalls(1)
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_different_config(world, tmp_path):
     _run(world, tmp_path, stop_after=1)
     with pytest.raises(ValueError, match="different TrainConfig"):
         _run(world, tmp_path, epochs=4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("loss", [L.WeightedTripletLoss(), L.CETripletLoss(), L.DWTripletLoss()])
 def test_every_triplet_loss_trains(world, loss):
     _, hist = _run(world, loss=loss, epochs=1)

@@ -6,12 +6,28 @@ runs with ``PROFILE = "reproduce"`` (``make reproduce``) it calls :func:`save`, 
 ``notebooks/results/<name>.json`` stamped with the git commit, date, library versions and the
 notebook's experiment config; in every profile it then calls :func:`load` with the config its code
 has *now*, and shows the committed table. :func:`load` refuses a file whose config differs from the
-notebook's (a changed epoch count, lr, seed list, …), and a file computed with other
-course-backbone weights (compared by :func:`backbone_fingerprint`), so nbval fails and a result can never go stale
-silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "reproduce"``) and commit.
+notebook's (a changed epoch count, lr, seed list, …), a file computed with other
+course-backbone weights (compared by :func:`backbone_fingerprint`), and a file computed on another
+synthetic world (compared by :func:`world_fingerprints`), so nbval fails and a result can never go
+stale silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "reproduce"``) and commit.
+
+**Keys.** A results file is keyed on three things, each checked by :func:`load`:
+
+* ``config``: the notebook's experiment settings, as the notebook passes them;
+* ``course_backbone``: the sha256 of the course backbone's tensors (``data_fixtures/course_backbone.pt``);
+* ``worlds``: for every synthetic world the experiment config names, the world's fingerprint
+  (:meth:`vpr_nb.synthetic.WorldConfig.fingerprint`: every field of its ``WorldConfig`` and the
+  condition rows it uses) and its fields. The notebooks need no code for this: the world is found in
+  the config they already pass, under ``"world"`` (a dict with ``preset``, optional ``size``
+  and ``overrides``, as given to ``make_dataset``) or ``"worlds"`` (a dict of such dicts), so a
+  changed ``WorldConfig`` default, a kind's changed deviation or a changed condition row makes the
+  file stale, and the error names the fields that changed. Rendering constants are not scene knobs
+  and are not in the fingerprint; they are pinned by the pixel hashes of ``tests/test_synthetic.py``,
+  whose failure says to re-run the reproduce profile.
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import math
@@ -45,6 +61,56 @@ def backbone_fingerprint(path=None) -> str:
     return h.hexdigest()
 
 
+def world_fingerprints(config: Mapping) -> dict[str, dict]:
+    """{key: {"fingerprint", "world", "config"}} of the synthetic worlds ``config`` names: ``config["world"]``
+    (key ``"world"``) and each ``config["worlds"][name]`` (key ``"worlds.<name>"``), every one a dict with
+    ``preset``, optional ``size`` and ``overrides`` (other entries, such as the seed, are the
+    experiment's and stay in ``config``). Unknown presets or options raise ValueError."""
+    from .synthetic import make_config
+
+    specs = {}
+    if isinstance(config.get("world"), Mapping):
+        specs["world"] = config["world"]
+    worlds = config.get("worlds") or {}
+    if not isinstance(worlds, Mapping):
+        raise ValueError(f"config['worlds'] must be a dict {{name: world}}, got {type(worlds).__name__}")
+    for name, spec in worlds.items():
+        specs[f"worlds.{name}"] = spec
+    out = {}
+    for key, spec in specs.items():
+        if not isinstance(spec, Mapping) or not isinstance(spec.get("preset"), str):
+            raise ValueError(f"config[{key!r}] must be a dict with a 'preset' (and optional 'size', 'overrides'), "
+                             f"got {spec!r}")
+        cfg = make_config(spec["preset"], spec.get("size", "tiny"), **dict(spec.get("overrides") or {}))
+        out[key] = {"fingerprint": cfg.fingerprint(), "world": f"{cfg.preset}-{cfg.size}",
+                    "config": _canonical(dataclasses.asdict(cfg))}
+    return out
+
+
+def _stale_worlds(path: Path, committed, now: dict) -> str | None:
+    """Why the committed world records differ from today's (None when they do not)."""
+    committed = committed if isinstance(committed, Mapping) else {}
+    for key, rec in now.items():
+        old = committed.get(key)
+        if not isinstance(old, Mapping) or "fingerprint" not in old:
+            return (f"notebooks/results/{path.name} is stale: it holds no fingerprint of the synthetic world "
+                    f"config[{key!r}] ({rec['world']}), so it cannot be shown to match today's world")
+        if old["fingerprint"] == rec["fingerprint"]:
+            continue
+        was, cur = old.get("config") or {}, rec["config"]
+        fields = sorted(k for k in set(was) | set(cur) if was.get(k, "(absent)") != cur.get(k, "(absent)"))
+        what = (f"in WorldConfig field(s) {fields} (committed {[was.get(k, '(absent)') for k in fields]}, now "
+                f"{[cur.get(k, '(absent)') for k in fields]})" if fields else
+                "in the condition rows it uses (vpr_nb.synthetic.CONDITIONS)")
+        return (f"notebooks/results/{path.name} is stale: it was computed on another synthetic world: "
+                f"config[{key!r}] ({rec['world']}) differs from today's {what}")
+    extra = sorted(set(committed) - set(now))
+    if extra:
+        return (f"notebooks/results/{path.name} is stale: it was computed on worlds {extra} that the notebook's "
+                f"config no longer names")
+    return None
+
+
 def _path(name: str, results_dir, *, write: bool = False) -> Path:
     if not isinstance(name, str) or not name or "/" in name:
         raise ValueError(f"name must be a notebook stem such as '03_distance_ranking_weighted_loss', got {name!r}")
@@ -64,7 +130,7 @@ def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> P
     stamp = environment_header("reproduce")
     stamp["date"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d")
     doc = {"notebook": name, "stamp": stamp, "course_backbone": backbone_fingerprint(),
-           "config": _canonical(config), "results": _canonical(results)}
+           "worlds": world_fingerprints(config), "config": _canonical(config), "results": _canonical(results)}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n", encoding="utf-8")
@@ -73,10 +139,11 @@ def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> P
 
 
 def load(name: str, config: Mapping, *, results_dir=None) -> dict:
-    """The committed results of notebook ``name``; ``config`` must equal the one they were made with.
+    """The committed results of notebook ``name``; ``config`` must equal the one they were made with,
+    on today's course backbone and synthetic world(s) (the module docstring lists the keys).
 
-    Raises ``FileNotFoundError`` when nothing is committed and ``ValueError`` naming the keys that
-    differ when the notebook's experiment changed since (the results are stale).
+    Raises ``FileNotFoundError`` when nothing is committed and ``ValueError`` naming what differs
+    when the notebook's experiment, the backbone or a world changed since (the results are stale).
     """
     path = _path(name, results_dir)
     if not path.is_file():
@@ -93,6 +160,9 @@ def load(name: str, config: Mapping, *, results_dir=None) -> dict:
         raise ValueError(f"notebooks/results/{path.name} is stale: it was computed with other course-backbone "
                          f"weights than vpr_nb/weights/course_backbone.pt holds now; re-run the notebook with "
                          f"PROFILE = 'reproduce' and commit")
+    why = _stale_worlds(path, doc.get("worlds"), world_fingerprints(config))
+    if why:
+        raise ValueError(f"{why}; re-run the notebook with PROFILE = 'reproduce' and commit")
     return doc
 
 

@@ -1,0 +1,148 @@
+"""The ``"route"`` world (Nordland-like): one long railway through countryside.
+
+Trees, houses, catenary poles and fences along a smooth curvy track, in landscape zones (forest,
+field, village) that change slowly; a camera looking forward takes one frame every ``frame_spacing``
+metres; the database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
+(``pos_radius = 1.01 * frame_spacing``). Splits are bands of frames.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..cameras import Cameras, split_bands
+from ..layout import (FENCE, MIN_WALL_ALBEDO, POLE, WALL, Scene, SegmentStore, facade_styles, finish_scene, rgb,
+                      tree_segments)
+from ..render import hash01
+from .base import WorldKind
+
+TRACK_PAD = 200                    # curvature noise is drawn for num_frames + 200 frames, then smoothed
+# Rendering constants (the scene knobs are WorldConfig fields).
+HOUSE_PHASE = 20.0                 # a house wall's texture starts at a random offset in [0, 20) m
+POLE_HALF_WIDTH = 0.15             # a pole is two crossed quads 0.3 m wide ...
+POLE_CROSS_OFFSET = 0.01           # ... the second one 1 cm further from the track
+POLE_COLOUR, FENCE_COLOUR = rgb(0.3, 0.3, 0.3), rgb(0.55, 0.4, 0.25)
+RAIL_SAMPLES = 20                  # the rails' distance field: the track sampled 20 times per frame
+TRACK_HALF_WIDTH = 1.6             # ground: ballast bed on each side of the track's centre line
+RAIL_BAND = (0.7, 0.9)             # ground: the rails, at these distances from the centre line
+SNOW_FREE_TRACK = 1.0              # ground: no snow this close to the centre line
+GRASS_PATCH = 4                    # ground: grass brightness varies per 4 m x 4 m patch
+BALLAST_COLOUR, RAIL_COLOUR, GRASS_COLOUR = rgb(0.38, 0.34, 0.30), rgb(0.6, 0.6, 0.62), rgb(0.25, 0.42, 0.18)
+
+
+def _check(cfg) -> None:
+    if cfg.track_smoothing > TRACK_PAD:
+        raise ValueError(f"track_smoothing must be <= {TRACK_PAD} frames, got {cfg.track_smoothing}")
+
+
+def _track(cfg, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth curvy track: positions every frame_spacing m and the forward heading (rad)."""
+    n, w = cfg.num_frames, cfg.track_smoothing
+    curv = np.convolve(rng.normal(0, 1, n + TRACK_PAD), np.ones(w) / w, mode="same")[TRACK_PAD // 2:TRACK_PAD // 2 + n]
+    heading = np.cumsum(curv * cfg.track_curvature * cfg.frame_spacing / 5.0)
+    step = cfg.frame_spacing * np.stack([np.cos(heading), np.sin(heading)], 1)
+    pos = np.concatenate([[np.zeros(2)], np.cumsum(step, 0)[:-1]])
+    return pos, heading
+
+
+def layout(cfg, rng: np.random.Generator) -> Scene:
+    """The track, then along it: trees (by zone density), houses (boxes of four walls), catenary poles
+    on one side and fences in the fields."""
+    track, heading = _track(cfg, rng)
+    styles = facade_styles(cfg, rng)
+    store = SegmentStore()
+    n = len(track)
+    normal = np.stack([-np.sin(heading), np.cos(heading)], 1)
+    fwd = np.stack([np.cos(heading), np.sin(heading)], 1)
+    zone = np.repeat(rng.integers(0, len(cfg.zone_tree_density), n // cfg.zone_frames + 2), cfg.zone_frames)[:n]
+    trees = []
+    for side in (-1, 1):
+        for k in range(n):
+            m = rng.poisson(cfg.zone_tree_density[zone[k]] * cfg.trees_per_frame)
+            if m:
+                off = side * rng.uniform(*cfg.tree_distance, m)
+                along = rng.uniform(0, cfg.frame_spacing, m)
+                trees.append(track[k] + fwd[k] * along[:, None] + normal[k] * off[:, None])
+    tree_segments(store, np.concatenate(trees), cfg, rng)
+    for k in range(0, n, cfg.house_every):
+        if rng.random() < cfg.zone_house_share[zone[k]]:
+            side = rng.choice([-1, 1])
+            c = track[k] + normal[k] * side * rng.uniform(*cfg.house_distance)
+            w, d = rng.uniform(*cfg.house_width), rng.uniform(*cfg.house_depth)
+            ang = heading[k] + rng.uniform(-cfg.house_yaw, cfg.house_yaw)
+            R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+            corners = (np.array([[-w, -d], [w, -d], [w, d], [-w, d]]) / 2) @ R.T + c
+            st = rng.integers(0, cfg.num_facade_types)
+            col = np.clip(styles[st, :3] + rng.normal(0, cfg.colour_variation, 3), MIN_WALL_ALBEDO, 1)
+            h = rng.uniform(*cfg.house_height)
+            for e in range(4):
+                store.add(corners[e][None], corners[(e + 1) % 4][None], [0.0], [h], [WALL], [st], col[None],
+                          [rng.uniform(0, HOUSE_PHASE)])
+    for k in range(0, n, max(1, int(cfg.pole_spacing / cfg.frame_spacing))):
+        p = track[k] + normal[k] * cfg.pole_offset
+        for axis in (fwd[k], normal[k]):       # two crossed quads, the second a hair further out
+            store.add((p - axis * POLE_HALF_WIDTH)[None], (p + axis * POLE_HALF_WIDTH)[None], [0.0],
+                      [cfg.pole_height], [POLE], [0], POLE_COLOUR[None], [0.0])
+            p = p + normal[k] * POLE_CROSS_OFFSET
+    e = cfg.fence_every
+    for k in range(0, n - e, e):
+        share = cfg.zone_fence_share[zone[k]]
+        if share > 0 and rng.random() < share:
+            side = rng.choice([-1, 1])
+            p, q = track[k] + normal[k] * side * cfg.fence_offset, track[k + e] + normal[k + e] * side * cfg.fence_offset
+            store.add(p[None], q[None], [0.0], [cfg.fence_height], [FENCE], [0], FENCE_COLOUR[None], [0.0])
+    # the rails: a KD-tree over the track sampled RAIL_SAMPLES times per frame (distance to the polyline)
+    fine = np.concatenate([track[:-1] + (track[1:] - track[:-1]) * f
+                           for f in np.linspace(0, 1, RAIL_SAMPLES, endpoint=False)])
+    return finish_scene(store, cfg, rng, ROUTE, center=track.mean(0),
+                        layout=dict(track=track, heading=heading, track_tree=cKDTree(fine)), styles=styles)
+
+
+def cameras(cfg, rng: np.random.Generator, scene: Scene) -> Cameras:
+    """One forward-looking database camera per frame; its query jittered along the track and in
+    heading. A query is tagged with its frame's track position (Nordland's ground truth is
+    frame-aligned), so positives within 1.01 x frame_spacing are exactly frames i-1, i, i+1; the
+    along-track jitter only moves the rendered camera."""
+    track, heading = scene.layout["track"], scene.layout["heading"]
+    n = len(track)
+    frames = np.arange(n)
+    db_pos = track.copy()
+    db_head = np.degrees(heading) % 360
+    fwd = np.stack([np.cos(heading), np.sin(heading)], 1)
+    q_pos = track + fwd * rng.normal(0, cfg.position_jitter, n)[:, None]
+    q_head = (db_head + rng.normal(0, cfg.heading_jitter, n)) % 360
+    gap_frames = int(np.ceil(cfg.pos_radius * cfg.split_gap / cfg.frame_spacing))
+    split = split_bands(frames.astype(float), 0, n, cfg.split_fractions, gap=gap_frames)
+    place = frames // cfg.frames_per_group
+    return Cameras(db_pos=db_pos, db_heading=db_head, db_place=place, db_split=split, q_pos=q_pos,
+                   q_heading=q_head, q_place=place.copy(), q_split=split.copy(), q_tag=db_pos.copy())
+
+
+def ground(gp: np.ndarray, plan: dict, snow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Route ground colour at points ``gp`` (P, 2): the track (ballast bed and two rails, from the
+    distance to the track's centre line) through patchy grass. Returns (colour, snow cover): no snow
+    on the track's middle."""
+    dd, _ = plan["track_tree"].query(gp)
+    track = dd < TRACK_HALF_WIDTH
+    patch = hash01((gp[:, 0] / GRASS_PATCH).astype(int), (gp[:, 1] / GRASS_PATCH).astype(int))
+    grass = GRASS_COLOUR * (0.85 + 0.3 * patch)[:, None]
+    gcol = np.where(track[:, None], BALLAST_COLOUR, grass)
+    gcol = np.where((track & (dd > RAIL_BAND[0]) & (dd < RAIL_BAND[1]))[:, None], RAIL_COLOUR, gcol)
+    return gcol, snow * (~track | (dd > SNOW_FREE_TRACK))
+
+
+ROUTE = WorldKind(
+    name="route", description=__doc__.splitlines()[0], layout=layout, cameras=cameras, ground=ground,
+    skyline_colour=rgb(0.30, 0.40, 0.42),
+    fields=frozenset({"num_frames", "frame_spacing", "frames_per_group", "track_curvature", "track_smoothing",
+                      "zone_frames", "zone_tree_density", "zone_house_share", "zone_fence_share", "trees_per_frame",
+                      "tree_distance", "house_every", "house_distance", "house_width", "house_depth", "house_height",
+                      "house_yaw", "pole_spacing", "pole_offset", "pole_height", "fence_every", "fence_offset",
+                      "fence_height"}),
+    preset=dict(db_condition="summer", query_conditions=("winter",), position_jitter=0.8, heading_jitter=2.0,
+                occluder_rate=0.0, split_fractions=(0.6, 0.2, 0.2), skyline_height=(10.0, 130.0),
+                skyline_blockiness=0.0),
+    sizes={"tiny": {}, "small": {"num_frames": 3000}},
+    pos_radius_frames=1.01,
+    check=_check,
+)
