@@ -45,7 +45,7 @@ import vpr_nb
 from vpr_nb import plots
 from vpr_nb.evaluation import positives_within, raw_pixel_descriptors
 from vpr_nb.report import record
-from vpr_nb.synthetic import SPLITS, WorldConfig, make_config, make_dataset
+from vpr_nb.synthetic import SPLITS, WORLD_KINDS, WorldConfig, make_config, make_dataset
 
 if PROFILE not in ("ci", "reproduce"):
     raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
@@ -205,15 +205,15 @@ cfg_city, cfg_route = make_config("city", SIZE), make_config("route", SIZE)
 print(f"{'knob':20s} {'city':>10s} {'route':>10s}   meaning")
 for name, meaning in DIFFICULTY.items():
     print(f"{name:20s} {getattr(cfg_city, name)!s:>10s} {getattr(cfg_route, name)!s:>10s}   {meaning}")
-CITY_ONLY = {"blocks", "block_size", "street_width", "place_spacing", "headings", "heading_offset", "queries_per_place"}
-ROUTE_ONLY = {"num_frames", "frame_spacing", "frames_per_group"}
-print("\nother knobs (geometry, rendering, splits; '-' = not used by that preset):")
-for f in dataclasses.fields(WorldConfig):
-    if f.name in DIFFICULTY or f.name in ("preset", "size"):
-        continue
-    a = "-" if f.name in ROUTE_ONLY else getattr(cfg_city, f.name)
-    b = "-" if f.name in CITY_ONLY else getattr(cfg_route, f.name)
-    print(f"  {f.name:20s} city: {a!s:28s} route: {b!s}")
+# the other knobs (layout, cameras, rendering, splits); each world kind reads some of its own
+other = [f.name for f in dataclasses.fields(WorldConfig) if f.name not in DIFFICULTY and f.name not in ("preset", "size")]
+differ = [n for n in other if getattr(cfg_city, n) != getattr(cfg_route, n)]
+print(f"\n{len(other)} other knobs (geometry, rendering, splits); the {len(differ)} whose values differ "
+      f"between the presets ('-' = not read by that preset):")
+for n in differ:
+    a = "-" if n in WORLD_KINDS["route"].fields else getattr(cfg_city, n)
+    b = "-" if n in WORLD_KINDS["city"].fields else getattr(cfg_route, n)
+    print(f"  {n:24s} city: {a!s:28s} route: {b!s}")
 
 # %% [markdown]
 # ## Use `vpr_nb`: positives
