@@ -413,3 +413,30 @@ def init_netvlad(model: "VPRModel", images, per_image: int = 20, niter: int = 50
     cents = kmeans_centroids(descs, model.aggregator.num_clusters, niter=niter, seed=seed)
     model.aggregator.init_from_clusters(cents, descs)
     return descs, cents
+
+
+def init_salad(model: "VPRModel", images, batch_size: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
+    """SALAD's data-dependent initialisation on a backbone whose local features share a large common part.
+
+    Runs the backbone over ``images`` (uint8 ``(N, H, W, 3)``, e.g. the training database), takes the mean
+    and the standard deviation (clamped at 1e-3) of each channel over every position of every image, and
+    folds ``x -> (x - mean) / std`` into the first layer of SALAD's score and cluster-feature heads
+    (:meth:`vpr_nb.aggregation.SALAD.standardise_inputs`; notebook 05 measures the collapse it removes).
+    Returns ``(mean, std)``. Deterministic.
+    """
+    from .aggregation import SALAD
+    from .evaluation import as_image_array, images_to_tensor
+
+    if not isinstance(getattr(model, "aggregator", None), SALAD):
+        raise ValueError("init_salad needs a VPRModel whose aggregator is SALAD (build_model(..., 'salad'))")
+    arr = as_image_array(images)
+    if len(arr) == 0:
+        raise ValueError("init_salad needs at least one image")
+    batch_size = check_int(batch_size, "batch_size")
+    with torch.no_grad():
+        maps = torch.cat([model.backbone(images_to_tensor(arr[s:s + batch_size]))
+                          for s in range(0, len(arr), batch_size)])
+    x = maps.transpose(0, 1).flatten(1)                                      # [C, all positions]
+    mean, std = x.mean(1), x.std(1).clamp_min(1e-3)
+    model.aggregator.standardise_inputs(mean, std)
+    return mean, std
