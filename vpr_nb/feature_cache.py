@@ -22,8 +22,8 @@ in ``train()``), Dropout and any unknown module. The frozen weights are fingerpr
 (``load_state_dict`` with other values, a different number of frozen blocks) the stored maps are dropped.
 
 **Memory.** ``float32`` storage by default: a course-backbone map (width 48: 96 channels × 8 × 12 for a
-32×48 image) takes 36 KiB, so the tiny city's train + val splits (1,599 images) take 57.6 MiB and the
-tiny route's (1,434 images) 51.6 MiB. ``float16`` halves that but changes descriptors by about 1e-3
+32×48 image) takes 36 KiB, so the tiny city's train + val splits (1,599 images) take 56.2 MiB and the
+tiny route's (1,434 images) 50.4 MiB. ``float16`` halves that but changes descriptors by about 3e-4
 (measured in ``bench/bench_frozen_cache.py``), more than the 1e-5 the cached path must stay within, so it is
 only an option. Beyond ``max_bytes`` new maps are computed and not stored (counted in ``bypassed``).
 
@@ -108,7 +108,7 @@ class FrozenFeatureCache:
     """Per-image memo of a backbone's frozen layers (see the module docstring).
 
     Args:
-        dtype: storage precision, ``"float32"`` (exact) or ``"float16"`` (half the memory, ~1e-3 error).
+        dtype: storage precision, ``"float32"`` (exact) or ``"float16"`` (half the memory, ~3e-4 error).
         max_bytes: stop storing new maps beyond this size (they are then computed on every call).
 
     Counters: ``hits`` and ``misses`` (images), ``bypassed`` (misses not stored because the cache was full),
@@ -121,26 +121,25 @@ class FrozenFeatureCache:
         self.dtype = CACHE_DTYPES[dtype]
         self.max_bytes = check_int(max_bytes, "max_bytes", minimum=0)
         self._rows: dict[bytes, int] = {}
-        self._store: torch.Tensor | None = None     # [capacity, C, h, w] on the CPU
-        self._size = 0
+        self._maps: list[torch.Tensor] = []         # one [C, h, w] map per stored image, on the CPU
         self._fingerprint: bytes | None = None
         self._versions: tuple | None = None
         self.hits = self.misses = self.bypassed = self.resets = 0
 
     def __len__(self) -> int:
-        return self._size
+        return len(self._maps)
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the stored maps (allocated rows included)."""
-        return 0 if self._store is None else self._store.numel() * self._store.element_size()
+        """Bytes held by the stored maps."""
+        return sum(m.numel() * m.element_size() for m in self._maps[:1]) * len(self._maps)
 
     def stats(self) -> dict:
-        return {"images": self._size, "MiB": round(self.nbytes / 2 ** 20, 2), "hits": self.hits,
+        return {"images": len(self._maps), "MiB": round(self.nbytes / 2 ** 20, 2), "hits": self.hits,
                 "misses": self.misses, "bypassed": self.bypassed, "resets": self.resets}
 
     def clear(self) -> None:
-        self._rows, self._store, self._size = {}, None, 0
+        self._rows, self._maps = {}, []
 
     def _sync(self, frozen: nn.Module) -> None:
         """Drop the stored maps if the frozen layers or their weights changed since they were computed."""
@@ -155,26 +154,22 @@ class FrozenFeatureCache:
             self.resets += 1
         self._fingerprint, self._versions = fingerprint, versions
 
-    def _append(self, maps: torch.Tensor) -> torch.Tensor | None:
-        """Store ``maps`` ``[k, ...]``; returns their row indices, or None when they do not fit."""
-        maps = maps.detach().to("cpu", self.dtype)
-        need = self._size + len(maps)
-        if need * maps[0].numel() * maps.element_size() > self.max_bytes:
-            return None
-        if self._store is not None and self._store.shape[1:] != maps.shape[1:]:
+    def _append(self, maps: torch.Tensor) -> list[int] | None:
+        """Store ``maps`` ``[k, ...]`` (one tensor per image, no spare rows); returns their row indices, or
+        None when they do not fit in ``max_bytes``."""
+        maps = maps.detach().to("cpu", self.dtype, copy=True)
+        each = maps[0].numel() * maps.element_size()
+        if self._maps and self._maps[0].shape != maps.shape[1:]:
             raise ValueError(f"the frozen blocks gave maps of shape {tuple(maps.shape[1:])}, the cache holds "
-                             f"{tuple(self._store.shape[1:])}: use one cache per image size")
-        if self._store is None or need > len(self._store):
-            capacity = max(need, 64, 0 if self._store is None else 2 * len(self._store))
-            capacity = min(capacity, max(need, self.max_bytes // (maps[0].numel() * maps.element_size())))
-            grown = torch.empty((capacity, *maps.shape[1:]), dtype=self.dtype)
-            if self._store is not None:
-                grown[:self._size] = self._store[:self._size]
-            self._store = grown
-        self._store[self._size:need] = maps
-        rows = torch.arange(self._size, need)
-        self._size = need
-        return rows
+                             f"{tuple(self._maps[0].shape)}: use one cache per image size")
+        if (len(self._maps) + len(maps)) * each > self.max_bytes:
+            return None
+        first = len(self._maps)
+        self._maps.extend(maps.unbind(0))
+        return list(range(first, len(self._maps)))
+
+    def _gather(self, rows: list[int]) -> torch.Tensor:
+        return torch.stack([self._maps[r] for r in rows])
 
     def _remember(self, keys: list[bytes], maps: torch.Tensor) -> None:
         first: dict[bytes, int] = {}
@@ -184,7 +179,7 @@ class FrozenFeatureCache:
         if rows is None:
             self.bypassed += len(keys)
             return
-        self._rows.update(zip(first, rows.tolist()))
+        self._rows.update(zip(first, rows))
 
     def __call__(self, frozen: nn.Module, x: torch.Tensor) -> torch.Tensor:
         """``frozen(x)``, each image's map taken from the cache when it was computed before."""
@@ -196,14 +191,14 @@ class FrozenFeatureCache:
         self.misses += len(miss)
         layout = _memory_format(x)     # the layout frozen(x) has: later layers (dropout masks!) depend on it
         if not miss:
-            return self._store[rows].to(x.device, x.dtype).contiguous(memory_format=layout)
+            return self._gather(rows).to(x.device, x.dtype).contiguous(memory_format=layout)
         computed = frozen(x if len(miss) == len(keys) else x[miss])
         self._remember([keys[i] for i in miss], computed)
         if len(miss) == len(keys):
             return computed
         out = torch.empty((len(keys), *computed.shape[1:]), dtype=computed.dtype, device=computed.device)
         hit = [i for i, r in enumerate(rows) if r >= 0]
-        out[hit] = self._store[[rows[i] for i in hit]].to(out.device, out.dtype)
+        out[hit] = self._gather([rows[i] for i in hit]).to(out.device, out.dtype)
         out[miss] = computed
         return out.contiguous(memory_format=layout)
 
