@@ -12,7 +12,7 @@ from vpr_nb.feature_cache import FrozenFeatureCache
 from vpr_nb.losses import DWTripletLoss, MultiSimilarityLoss, TripletLoss
 from vpr_nb.models import build_model, init_salad
 from vpr_nb.pretrain import course_backbone
-from vpr_nb.recipe import RECIPE, Method, Recipe, build_start, fine_tune, lr_search, make_source
+from vpr_nb.recipe import RECIPE, Method, Recipe, build_start, fine_tune, lr_search, make_source, place_batch_labels
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import History, PlaceBatchSource, TrainConfig, TripletSource, train
 
@@ -152,6 +152,7 @@ def test_early_stopping_stops_after_patience_epochs_without_improvement(world, t
     cfg = TrainConfig(epochs=6, optimizer="adam", lr=1e-3, seed=0, ns=(1,), initial_candidate=True, patience=2)
     hist = train(model, HurtingSource(tr), va, cfg, checkpoint_dir=tmp_path, progress=False)
     assert hist.stopped_early and len(hist.epochs) == 2 and hist.initial_won
+    assert torch.load(tmp_path / "best.pt", weights_only=True)["epoch"] == -1       # the start, written up front
     again = train(model, HurtingSource(tr), va, cfg, checkpoint_dir=tmp_path, progress=False)   # resume: nothing left
     assert len(again.epochs) == 2 and again.stopped_early
     with pytest.raises(ValueError, match="patience"):
@@ -185,6 +186,15 @@ def test_lr_search_picks_the_best_grid_point_on_validation(world):
     # a validation split of min_val_queries queries lets one seed choose
     one = fine_tune(Method("GeM", "gem"), tr, va, dataclasses.replace(recipe, min_val_queries=len(va.q_images)), 0)
     assert one.lr in recipe.lr_grid and one.search.seeds == (0,)
+
+
+def test_place_labels_keep_a_route_place_whole():
+    route = make_dataset("route", seed=0, num_frames=120).train
+    labels = place_batch_labels(route, RECIPE)
+    places = np.concatenate([route.db_place, route.q_place])
+    assert np.array_equal(labels, places)                    # headings straddle 0/360: no quadrant split
+    city = make_dataset("city", seed=0, blocks=(3, 2)).train
+    assert len(place_batch_labels(city, RECIPE)) == len(city.db_images) + len(city.q_images)
 
 
 def test_place_batches_and_custom_sources(world):

@@ -264,9 +264,22 @@ def build_start(method: Method, train_split, recipe: Recipe = RECIPE, seed: int 
     return model
 
 
+def place_batch_labels(split, recipe: Recipe = RECIPE) -> np.ndarray:
+    """Place label of every image of ``split`` (database first, then queries) for P × K place batches.
+
+    City: :func:`vpr_nb.pretrain.place_labels` (``recipe.spots_per_place`` street spots × view-direction
+    quadrant, notebook 05). Other worlds: the world's own place groups (``db_place`` / ``q_place``; the route's
+    5-frame groups, notebook 06): the route's cameras face about 0°, so their headings straddle the
+    quadrant boundary at 360° and a quadrant split would cut a place in two."""
+    from .pretrain import place_labels
+
+    if getattr(getattr(split, "config", None), "preset", None) == "city":
+        return place_labels(split, recipe.spots_per_place)
+    return np.concatenate([split.db_place, split.q_place]).astype(np.int64)
+
+
 def make_source(method: Method, train_split, recipe: Recipe = RECIPE):
     """The batch source of ``method`` on ``train_split`` with the recipe's batch settings."""
-    from .pretrain import place_labels
     from .samplers import random_place_batches
 
     method, recipe = _check_method(method), _check_recipe(recipe)
@@ -276,7 +289,7 @@ def make_source(method: Method, train_split, recipe: Recipe = RECIPE):
         return TripletSource(train_split, method.loss or L.TripletLoss(margin=recipe.margin),
                              batch_size=recipe.batch_size, num_negatives=recipe.num_negatives,
                              num_candidates=recipe.num_candidates, max_heading_diff=recipe.max_heading_diff)
-    labels = place_labels(train_split, recipe.spots_per_place)          # database first, then queries
+    labels = place_batch_labels(train_split, recipe)                    # database first, then queries
     images = np.concatenate([train_split.db_images, train_split.q_images])
 
     def batches(_model, _epoch, rng):

@@ -616,6 +616,8 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
     history, start, best_state = resumed or (History(), 0, copy.deepcopy(model.state_dict()))
     if cfg.initial_candidate and resumed is None:
         history.add_initial(*evaluate_epoch(model, val_split, cfg.ns), cfg.ns[0])
+        if ckdir is not None and rank == 0:          # best.pt exists even if no epoch beats the start
+            save_checkpoint(ckdir / "best.pt", {"model": best_state, "epoch": -1})
     net = wrap_ddp(model, setup.device, world)
     end = cfg.epochs if stop_after is None else min(cfg.epochs, start + check_int(stop_after, "stop_after"))
     end = start if history.stopped_early else end
