@@ -20,7 +20,7 @@ what it measures (both paths in one run), not absolute time. Nothing fails on ti
 paths beyond 1e-5 makes the script exit 1.
 
     python bench/bench_frozen_cache.py            # gem, netvlad, salad, 4 epochs each, + the lr search
-    python bench/bench_frozen_cache.py --quick    # gem, 1 epoch, one run each way
+    python bench/bench_frozen_cache.py --quick    # gem, 1 epoch
 """
 from __future__ import annotations
 
@@ -134,7 +134,7 @@ def bench_memory(ds) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="GeM only, 1 epoch, one run each way")
+    parser.add_argument("--quick", action="store_true", help="GeM only, 1 epoch")
     parser.add_argument("--epochs", type=int, default=None)
     parser.add_argument("--wide", type=int, default=96, help="width of the stand-in backbone of part 3 (0: skip)")
     parser.add_argument("--only-wide", action="store_true", help="run part 3 only")
@@ -148,7 +148,7 @@ def main(argv=None) -> int:
     ok = True
     if not args.only_wide:
         for aggregator in ("gem",) if args.quick else ("gem", "netvlad", "salad"):
-            ok &= bench_fine_tune(ds, aggregator, epochs, "UC" if args.quick else "UCCU")
+            ok &= bench_fine_tune(ds, aggregator, epochs, "UCCU")
         if not args.quick:
             bench_search(ds, 2)
     if args.wide and (args.only_wide or not args.quick):
