@@ -378,6 +378,26 @@ class SALAD(nn.Module):
         s = self.score(features).flatten(2)                                          # [B, m, n]
         return salad_aggregate(f, s, self.token_features(token), self.dust_bin, 3)
 
+    def standardise_inputs(self, mean, std) -> None:
+        """Fold ``x -> (x - mean) / std`` (per channel) into the first 1×1 conv of the score and cluster-feature
+        heads, so that they see standardised local features; the token head and the state-dict layout are
+        unchanged. A data-dependent initialisation (NetVLAD's k-means plays this role): on a backbone whose
+        local features share a large common component the published initialisation gives identical cluster
+        vectors (notebook 05); :func:`vpr_nb.models.init_salad` computes ``mean`` and ``std`` from images."""
+        mean = torch.as_tensor(mean, dtype=torch.float32).flatten()
+        std = torch.as_tensor(std, dtype=torch.float32).flatten()
+        for name, t in (("mean", mean), ("std", std)):
+            if t.shape != (self.num_channels,) or not torch.isfinite(t).all():
+                raise ValueError(f"{name} must hold {self.num_channels} finite values (one per channel), "
+                                 f"got shape {tuple(t.shape)}")
+        if not (std > 0).all():
+            raise ValueError("std must be positive in every channel (clamp it, e.g. std.clamp_min(1e-3))")
+        with torch.no_grad():
+            for head in (self.score, self.cluster_features):
+                conv = head[0]
+                conv.bias -= conv.weight[:, :, 0, 0] @ (mean / std).to(conv.weight)
+                conv.weight /= std.to(conv.weight)[None, :, None, None]
+
 
 # ----------------------------------------------------------------------------------------- factory
 

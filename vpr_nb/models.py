@@ -102,13 +102,16 @@ class SmallCNN(nn.Module):
             nn.Conv2d(2 * width, self.out_channels, 1), nn.ReLU(inplace=True))
         self.token = nn.Linear(self.out_channels, self.out_channels)
         self.num_frozen = 0                       # leading layers of ``features`` that run without autograd
+        self.frozen_cache = None                  # a vpr_nb.feature_cache.FrozenFeatureCache for those layers
 
     # first layer of each block in ``features``: patchify, conv, conv, 1x1 projection
     BLOCK_STARTS = (0, 3, 6, 9)
 
     def set_trainable_blocks(self, k: int) -> "SmallCNN":
         """Train only the last ``k`` of the 4 blocks (0: all frozen, 4: all train); earlier layers get
-        ``requires_grad=False`` and run under ``torch.no_grad()``. The global token layer always trains."""
+        ``requires_grad=False`` and run under ``torch.no_grad()``, through ``frozen_cache`` when one is
+        attached (:mod:`vpr_nb.feature_cache`: each image's frozen map computed once). The global token
+        layer always trains."""
         k = check_int(k, "trainable_blocks", minimum=0, maximum=len(self.BLOCK_STARTS))
         self.num_frozen = len(self.features) if k == 0 else self.BLOCK_STARTS[len(self.BLOCK_STARTS) - k]
         for i, layer in enumerate(self.features):
@@ -119,8 +122,9 @@ class SmallCNN(nn.Module):
         """``x`` ``[B, in_channels, H, W]`` (H, W ≥ 4) → feature map ``[B, out_channels, H//4, W//4]``."""
         _check_images(x, "x", self.in_channels, min_size=self.stride)
         if self.num_frozen:
+            frozen, cache = self.features[:self.num_frozen], getattr(self, "frozen_cache", None)
             with torch.no_grad():
-                x = self.features[:self.num_frozen](x)
+                x = frozen(x) if cache is None else cache(frozen, x)
         return self.features[self.num_frozen:](x)
 
     def forward_with_token(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -409,3 +413,30 @@ def init_netvlad(model: "VPRModel", images, per_image: int = 20, niter: int = 50
     cents = kmeans_centroids(descs, model.aggregator.num_clusters, niter=niter, seed=seed)
     model.aggregator.init_from_clusters(cents, descs)
     return descs, cents
+
+
+def init_salad(model: "VPRModel", images, batch_size: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
+    """SALAD's data-dependent initialisation on a backbone whose local features share a large common part.
+
+    Runs the backbone over ``images`` (uint8 ``(N, H, W, 3)``, e.g. the training database), takes the mean
+    and the standard deviation (clamped at 1e-3) of each channel over every position of every image, and
+    folds ``x -> (x - mean) / std`` into the first layer of SALAD's score and cluster-feature heads
+    (:meth:`vpr_nb.aggregation.SALAD.standardise_inputs`; notebook 05 measures the collapse it removes).
+    Returns ``(mean, std)``. Deterministic.
+    """
+    from .aggregation import SALAD
+    from .evaluation import as_image_array, images_to_tensor
+
+    if not isinstance(getattr(model, "aggregator", None), SALAD):
+        raise ValueError("init_salad needs a VPRModel whose aggregator is SALAD (build_model(..., 'salad'))")
+    arr = as_image_array(images)
+    if len(arr) == 0:
+        raise ValueError("init_salad needs at least one image")
+    batch_size = check_int(batch_size, "batch_size")
+    with torch.no_grad():
+        maps = torch.cat([model.backbone(images_to_tensor(arr[s:s + batch_size]))
+                          for s in range(0, len(arr), batch_size)])
+    x = maps.transpose(0, 1).flatten(1)                                      # [C, all positions]
+    mean, std = x.mean(1), x.std(1).clamp_min(1e-3)
+    model.aggregator.standardise_inputs(mean, std)
+    return mean, std

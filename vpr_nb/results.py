@@ -10,11 +10,13 @@ notebook's (a changed epoch count, lr, seed list, …), a file computed with oth
 course-backbone weights (compared by :func:`backbone_fingerprint`), and a file computed on another
 synthetic world (compared by :func:`world_fingerprints`), so nbval fails and a result can never go
 stale silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "reproduce"``) and commit.
+A verdict between two fine-tuned methods goes through :func:`gated_verdict`: only when the baseline beats
+its own starting point (:func:`control_gate`).
 
 **Keys.** A results file is keyed on three things, each checked by :func:`load`:
 
 * ``config``: the notebook's experiment settings, as the notebook passes them;
-* ``course_backbone``: the sha256 of the course backbone's tensors (``data_fixtures/course_backbone.pt``);
+* ``course_backbone``: the sha256 of the course backbone's tensors (``vpr_nb/weights/course_backbone.pt``);
 * ``worlds``: for every synthetic world the experiment config names, the world's fingerprint
   (:meth:`vpr_nb.synthetic.WorldConfig.fingerprint`: every field of its ``WorldConfig`` and the
   condition rows it uses) and its fields. The notebooks need no code for this: the world is found in
@@ -188,6 +190,57 @@ def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B") -> str:
     if abs(m) > 2 * se:
         return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): {a if m > 0 else b} is better"
     return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): within 2 SE, no verdict"
+
+
+def _finite_values(values, name: str) -> list[float]:
+    """``values`` as floats; NaN or inf in any seed is refused, naming the seed."""
+    try:
+        vals = [float(v) for v in values]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a list of numbers (one per seed), got {values!r}") from None
+    bad = [i for i, v in enumerate(vals) if not math.isfinite(v)]
+    if bad:
+        raise ValueError(f"{name} holds NaN or inf at seed position(s) {bad} ({[vals[i] for i in bad]}): a run "
+                         f"failed or was not recorded; fix or re-run it, a verdict over it means nothing")
+    return vals
+
+
+def control_gate(baseline_vals, start_vals, baseline: str = "baseline",
+                 start: str = "its starting point") -> tuple[bool, str]:
+    """Does the baseline fine-tune beat its starting point (the epoch-0 weights) by more than 2 SE, paired
+    over seeds? Returns ``(passed, "baseline − start = x ± SE (SE, n seeds)")``.
+
+    ``start_vals`` is one value per seed, or a single number when the start is the same for every seed (a
+    frozen backbone). One seed has no spread and never passes. NaN in any value is refused."""
+    base = _finite_values(baseline_vals, f"{baseline} (baseline values)")
+    if isinstance(start_vals, (int, float)) and not isinstance(start_vals, bool):
+        start_vals = [start_vals] * len(base)
+    ref = _finite_values(start_vals, f"{start} (starting-point values)")
+    if len(base) != len(ref) or not base:
+        raise ValueError(f"control_gate needs one starting-point value per baseline seed (or one number), got "
+                         f"{len(base)} baseline and {len(ref)} starting-point values")
+    diff = [x - y for x, y in zip(base, ref)]
+    m, sd = mean_std(diff)
+    if len(diff) < 2:
+        return False, f"{baseline} − {start} = {m:+.3f} on one seed (no spread)"
+    se = sd / math.sqrt(len(diff))
+    return m > 2 * se, f"{baseline} − {start} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds)"
+
+
+def gated_verdict(a_vals, b_vals, start_vals, a: str = "A", b: str = "B", start: str = "its starting point") -> str:
+    """:func:`paired_verdict` of ``a`` against the baseline ``b``, printed only when the baseline's own
+    fine-tune works: ``b`` must beat its starting point ``start_vals`` by more than 2 SE (:func:`control_gate`).
+    Otherwise: "inconclusive: the baseline does not improve on its starting point (b − start = x ± SE)".
+    NaN in any per-seed value is refused (``ValueError``)."""
+    a_checked = _finite_values(a_vals, f"{a} (method values)")
+    b_checked = _finite_values(b_vals, f"{b} (baseline values)")
+    if len(a_checked) != len(b_checked):
+        raise ValueError(f"gated_verdict needs the same seeds for {a} and {b}, got {len(a_checked)} and "
+                         f"{len(b_checked)} values")
+    passed, control = control_gate(b_checked, start_vals, b, start)
+    if not passed:
+        return f"{a} vs {b}: inconclusive: the baseline does not improve on its starting point ({control})"
+    return f"{paired_verdict(a_checked, b_checked, a, b)} [control: {control}]"
 
 
 def print_table(rows: Mapping, title: str, label_width: int = 22, col_width: int = 24) -> None:

@@ -65,6 +65,8 @@ class TrainConfig:
     seed: int = 0
     ns: tuple[int, ...] = (1, 5, 10)
     restore_best: bool = True        # end with the best-on-validation weights
+    initial_candidate: bool = False  # the starting weights compete in the selection ("epoch 0", History.initial)
+    patience: int | None = None      # stop after this many epochs without a better val R@ns[0] (None: never)
     device: str = "auto"             # "auto" (cuda if available), "cpu", "cuda", "cuda:1", ...
     amp: bool = False                # autocast: bfloat16 on CPU / bf16-capable GPUs, else float16 + GradScaler
 
@@ -84,7 +86,8 @@ class TrainConfig:
         if not isinstance(self.device, str) or not (self.device in ("auto", "cpu") or self.device.startswith("cuda")):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:N]', got {self.device!r}")
         self.seed = check_int(self.seed, "seed", minimum=0)
-        for name in ("restore_best", "amp"):
+        self.patience = None if self.patience is None else check_int(self.patience, "patience")
+        for name in ("restore_best", "amp", "initial_candidate"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         self.ns = tuple(check_int(n, "ns entry") for n in self.ns)
@@ -102,11 +105,37 @@ class History:
     M × margin for the triplet loss of Eq. (3) or M·log 2 for the CE loss of Eq. (8).
     ``mean_cosine`` is the mean pairwise cosine of the validation database descriptors
     (:func:`mean_pairwise_cosine`): near 1 means a collapsed embedding.
+
+    Epoch-0 candidate (``TrainConfig.initial_candidate``): ``initial`` = {val, mean_cosine} of the starting
+    weights, evaluated before any step; an epoch must *beat* it to be selected, and ``initial_won`` says
+    when none did (then ``best_epoch`` stays -1 and the run ends with its starting weights). Printed
+    1-based, ``best_epoch + 1`` is then 0. ``stopped_early``: the run ended by ``TrainConfig.patience``.
     """
 
     epochs: list[dict] = field(default_factory=list)
     best_epoch: int = -1
     best_recall: float = -1.0
+    initial: dict | None = None
+    stopped_early: bool = False
+
+    def add_initial(self, val: dict, mean_cosine: float, select_n: int) -> None:
+        """Record the starting weights' validation Recall@N as the epoch-0 candidate of the selection."""
+        if self.epochs or self.initial is not None:
+            raise ValueError("the epoch-0 candidate is recorded once, before the first epoch")
+        if select_n not in val:
+            raise ValueError(f"val holds Recall@N for N in {sorted(val)}, not the selection N={select_n}")
+        self.initial = {"val": val, "mean_cosine": mean_cosine}
+        self.best_epoch, self.best_recall = -1, float(val[select_n])
+
+    @property
+    def initial_won(self) -> bool:
+        """True when the starting weights (the epoch-0 candidate) beat every trained epoch on validation."""
+        return self.initial is not None and self.best_epoch == -1
+
+    @property
+    def epochs_since_best(self) -> int:
+        """Epochs run since the selected one (the epoch-0 candidate counts as epoch -1)."""
+        return (self.epochs[-1]["epoch"] - self.best_epoch) if self.epochs else 0
 
     def add_epoch(self, epoch: int, loss: float, collapsed_loss: float, mean_cosine: float, lr: float,
                   seconds: float, val: dict, select_n: int) -> bool:
@@ -138,13 +167,20 @@ class History:
         return [e["mean_cosine"] for e in self.epochs]
 
     def to_dict(self) -> dict:
+        initial = None if self.initial is None else \
+            dict(self.initial, val={int(k): float(v) for k, v in self.initial["val"].items()})
         return {"epochs": [dict(e, val={int(k): float(v) for k, v in e["val"].items()}) for e in self.epochs],
-                "best_epoch": self.best_epoch, "best_recall": self.best_recall}
+                "best_epoch": self.best_epoch, "best_recall": self.best_recall,
+                "initial": initial, "stopped_early": self.stopped_early}
 
     @classmethod
     def from_dict(cls, d: dict) -> "History":
+        initial = d.get("initial")
+        if initial is not None:
+            initial = dict(initial, val={int(k): v for k, v in initial["val"].items()})
         return cls(epochs=[dict(e, val={int(k): v for k, v in e["val"].items()}) for e in d["epochs"]],
-                   best_epoch=int(d["best_epoch"]), best_recall=float(d["best_recall"]))
+                   best_epoch=int(d["best_epoch"]), best_recall=float(d["best_recall"]),
+                   initial=initial, stopped_early=bool(d.get("stopped_early", False)))
 
     def plot(self, axes=None, label: str | None = None):
         """Learning curves: training loss (left) and validation Recall@1 (right)."""
@@ -154,7 +190,10 @@ class History:
         x = [e["epoch"] + 1 for e in self.epochs]
         axes[0].plot(x, self.losses, marker="o", label=label)
         axes[0].set(xlabel="epoch", ylabel="mean training loss", title="loss")
-        axes[1].plot(x, self.recalls(1), marker="o", label=label)
+        r1 = self.recalls(1)
+        if self.initial is not None and 1 in self.initial["val"]:      # the epoch-0 candidate at x = 0
+            x, r1 = [0] + x, [self.initial["val"][1]] + r1
+        axes[1].plot(x, r1, marker="o", label=label)
         axes[1].set(xlabel="epoch", ylabel="val Recall@1", title="validation Recall@1", ylim=(0, 1))
         if label is not None:
             axes[1].legend()
@@ -587,7 +626,9 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
     ``checkpoint_dir``, the full state in ``last.pt``. With ``resume`` an existing ``last.pt`` is
     continued. ``stop_after`` ends the run after that many epochs of this call (to simulate an
     interruption). Returns the :class:`History`; with ``config.restore_best`` the model ends with
-    the best validation weights.
+    the best validation weights. With ``config.initial_candidate`` the starting weights are evaluated
+    first and compete as epoch 0 (:meth:`History.add_initial`); with ``config.patience`` the run stops
+    after that many epochs without a better validation Recall@``ns[0]`` (``History.stopped_early``).
 
     Distributed: when a ``torch.distributed`` process group is initialised (e.g. under ``torchrun``)
     the model is wrapped in ``DistributedDataParallel``; every process mines the same batches and
@@ -607,8 +648,13 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
     ckdir = None if checkpoint_dir is None else Path(checkpoint_dir)
     resumed = None if ckdir is None or not resume else resume_state(ckdir, cfg, model, opt, sched, source, setup.scaler)
     history, start, best_state = resumed or (History(), 0, copy.deepcopy(model.state_dict()))
+    if cfg.initial_candidate and resumed is None:
+        history.add_initial(*evaluate_epoch(model, val_split, cfg.ns), cfg.ns[0])
+        if ckdir is not None and rank == 0:          # best.pt exists even if no epoch beats the start
+            save_checkpoint(ckdir / "best.pt", {"model": best_state, "epoch": -1})
     net = wrap_ddp(model, setup.device, world)
     end = cfg.epochs if stop_after is None else min(cfg.epochs, start + check_int(stop_after, "stop_after"))
+    end = start if history.stopped_early else end
     bar = tqdm(range(start, end), desc="epochs", disable=not progress or rank != 0, leave=False)
     for epoch in bar:
         t0 = time.perf_counter()
@@ -619,10 +665,14 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
         improved = history.add_epoch(epoch, loss, collapsed, cosine, lr, time.perf_counter() - t0, val, cfg.ns[0])
         if improved:
             best_state = copy.deepcopy(model.state_dict())
+        history.stopped_early = cfg.patience is not None and history.epochs_since_best >= cfg.patience
         if ckdir is not None and rank == 0:
             save_epoch_checkpoints(ckdir, training_state(model, opt, sched, source, history, epoch, best_state, cfg,
                                                          setup.scaler), improved)
         bar.set_postfix(loss=f"{loss:.3f}", R1=f"{val[cfg.ns[0]]:.3f}")
-    if cfg.restore_best and history.best_epoch >= 0 and end == cfg.epochs:
+        if history.stopped_early:
+            break
+    selected = history.best_epoch >= 0 or history.initial is not None
+    if cfg.restore_best and selected and (end == cfg.epochs or history.stopped_early):
         model.load_state_dict(best_state)
     return history
