@@ -54,7 +54,9 @@ def execute_in_place(path, timeout: int = 600) -> float:
     jupytext_cli(["--sync", "--quiet", str(path)])
     nb = jupytext.read(path)  # the synced notebook, outputs and cell ids kept
     t0 = time.perf_counter()
-    NotebookClient(nb, timeout=timeout, kernel_name="python3", store_widget_state=False,
+    # store_widget_state=True: with False, nbclient 0.11 raises KeyError as soon as an ipywidgets Output
+    # (interact, interactive) captures output; clean() strips the stored state afterwards
+    NotebookClient(nb, timeout=timeout, kernel_name="python3", store_widget_state=True,
                    resources={"metadata": {"path": str(path.parent)}}).execute()
     seconds = time.perf_counter() - t0
     nbformat.write(clean(nb), path)
