@@ -608,7 +608,7 @@ check("weak_assignment_share", [
 # `ZERO_IMAGE = "..."` with one of those three strings.
 
 # %% tags=["grade-deps:ex-04-zero-predict", "grade-deps:ex-04-zero-descriptor"]
-import numpy as np  # all the two exercises below need: grading runs this cell, then your solution cell
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
 
 # %% nbgrader={"grade": false, "grade_id": "ex-04-zero-predict", "locked": false, "schema_version": 3, "solution": true}
 ### BEGIN SOLUTION
@@ -616,11 +616,9 @@ ZERO_IMAGE = "fixed by the centroids"
 ### END SOLUTION
 
 # %% nbgrader={"grade": true, "grade_id": "ex-04-zero-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-from vpr_nb.assignments import Case, check
+from vpr_nb.assignments import Case, check, one_of
 
-CHOICES = ("zero", "depends on N", "fixed by the centroids")
-check("ZERO_IMAGE", [Case("your prediction", rubric=lambda a: None if a in CHOICES else
-                          f"expected one of {CHOICES}, got {a!r}")], call=False)
+check("ZERO_IMAGE", [Case("your prediction", rubric=one_of("zero", "depends on N", "fixed by the centroids"))], call=False)
 ### BEGIN HIDDEN TESTS
 check("ZERO_IMAGE", [Case("the NetVLAD descriptor of an image whose local features are all zero",
                           expect="fixed by the centroids")], call=False)

@@ -486,7 +486,7 @@ check("misorder_empirical", [Case("x1 = [1, 3], x2 = [2, 3]: pairs (1,2) no, (1,
                                   "so (0 + 0 + 1 + 0.5) / 4", (np.array([1.0, 3.0]), np.array([2.0, 3.0])),
                                   expect=0.375, atol=1e-12)])
 ### BEGIN HIDDEN TESTS
-from scipy.special import ndtr
+from scipy.special import ndtr  # noqa: F811 (a test cell imports what it needs)
 
 rng = np.random.default_rng(0)
 a_h, b_h = rng.normal(0.5, 0.1, 2000), rng.normal(0.6, 0.1, 1500)
@@ -509,7 +509,7 @@ check("misorder_empirical", [
 # `raise` below by `CAP_OF_B = "..."` with one of those three strings.
 
 # %% tags=["grade-deps:ex-06-cap-predict", "grade-deps:ex-06-r1-cap"]
-import numpy as np  # all the two exercises below need: grading runs this cell, then your solution cell
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
 
 # %% nbgrader={"grade": false, "grade_id": "ex-06-cap-predict", "locked": false, "schema_version": 3, "solution": true}
 ### BEGIN SOLUTION
@@ -517,11 +517,9 @@ CAP_OF_B = "the same"
 ### END SOLUTION
 
 # %% nbgrader={"grade": true, "grade_id": "ex-06-cap-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-from vpr_nb.assignments import Case, check
+from vpr_nb.assignments import Case, check, one_of
 
-CHOICES = ("higher", "lower", "the same")
-check("CAP_OF_B", [Case("your prediction", rubric=lambda a: None if a in CHOICES else
-                        f"expected one of {CHOICES}, got {a!r}")], call=False)
+check("CAP_OF_B", [Case("your prediction", rubric=one_of("higher", "lower", "the same"))], call=False)
 ### BEGIN HIDDEN TESTS
 check("CAP_OF_B", [Case("the cap of Eq. (5) when every descriptor distance doubles", expect="the same")], call=False)
 ### END HIDDEN TESTS
@@ -552,7 +550,7 @@ from vpr_nb.assignments import Case, check
 check("r1_cap", [Case("equal means at 0 m and 10 m: p = 1/2, so a cap of 1/4",
                       (np.array([0.5, 0.6, 0.5]), np.array([0.1, 0.1, 0.1]), 0, 2), expect=0.25, atol=1e-9)])
 ### BEGIN HIDDEN TESTS
-from scipy.special import ndtr
+from scipy.special import ndtr  # noqa: F811 (a test cell imports what it needs)
 
 mu_h = np.array([0.40, 0.52, 0.61, 0.66, 0.70])
 sd_h = np.array([0.08, 0.09, 0.10, 0.10, 0.11])
@@ -620,9 +618,9 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 # ## Self-check
 #
 # 1. Why does this notebook lead with the mis-ordering probability rather than the GDS slope?
-#    <details><summary>Answer</summary>Retrieval only ranks; the mis-ordering probability depends only on
-#    rankings (it does not change if every distance is scaled), while the slope of Eq. (2) changes with the
-#    scale of the distances and a straight line misses how curved the profiles are.</details>
+#    <details><summary>Answer</summary>Retrieval only ranks: what decides a ranking is whether the nearer
+#    image gets the smaller distance, i.e. the gap between bin means relative to their spread (Eq. 3). A
+#    single slope over 0–30 m misses how curved the profiles are at the small distances that matter.</details>
 # 2. On the route, why can Recall@1 stay low for a descriptor that recognises the area well?
 #    <details><summary>Answer</summary>The positives are only one frame wide and the frames 10 m away are
 #    already negatives; if those look about as similar as the right frame, the query fails at rank 1 even though

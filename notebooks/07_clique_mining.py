@@ -557,7 +557,7 @@ check("close_pairs", [Case("6 random places x 4 images in a 100 m square, tau 20
 # `NEGATIVES_IF_TAU_DOUBLES = "..."` with one of those three strings.
 
 # %% tags=["grade-deps:ex-07-tau-predict", "grade-deps:ex-07-pick-batch"]
-import numpy as np  # all the two exercises below need: grading runs this cell, then your solution cell
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
 
 # %% nbgrader={"grade": false, "grade_id": "ex-07-tau-predict", "locked": false, "schema_version": 3, "solution": true}
 ### BEGIN SOLUTION
@@ -565,11 +565,9 @@ NEGATIVES_IF_TAU_DOUBLES = "farther"
 ### END SOLUTION
 
 # %% nbgrader={"grade": true, "grade_id": "ex-07-tau-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-from vpr_nb.assignments import Case, check
+from vpr_nb.assignments import Case, check, one_of
 
-CHOICES = ("closer", "farther", "the same")
-check("NEGATIVES_IF_TAU_DOUBLES", [Case("your prediction", rubric=lambda a: None if a in CHOICES else
-                                        f"expected one of {CHOICES}, got {a!r}")], call=False)
+check("NEGATIVES_IF_TAU_DOUBLES", [Case("your prediction", rubric=one_of("closer", "farther", "the same"))], call=False)
 ### BEGIN HIDDEN TESTS
 check("NEGATIVES_IF_TAU_DOUBLES", [Case("the hardest geographic negatives of clique batches when tau doubles",
                                         expect="farther")], call=False)

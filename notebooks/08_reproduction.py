@@ -334,7 +334,7 @@ check("overrides_between", [Case(f"--set {sets} on dwt-pitts30k", (base, resolve
 # `"it depends"`.
 
 # %% tags=["grade-deps:ex-08-convention-predict", "grade-deps:ex-08-conventions"]
-import numpy as np  # all the two exercises below need: grading runs this cell, then your solution cell
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
 
 # %% nbgrader={"grade": false, "grade_id": "ex-08-convention-predict", "locked": false, "schema_version": 3, "solution": true}
 ### BEGIN SOLUTION
@@ -342,11 +342,9 @@ HIGHER_CONVENTION = "exclude"
 ### END SOLUTION
 
 # %% nbgrader={"grade": true, "grade_id": "ex-08-convention-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-from vpr_nb.assignments import Case, check
+from vpr_nb.assignments import Case, check, one_of
 
-CHOICES = ("all", "exclude", "it depends")
-check("HIGHER_CONVENTION", [Case("your prediction", rubric=lambda a: None if a in CHOICES else
-                                 f"expected one of {CHOICES}, got {a!r}")], call=False)
+check("HIGHER_CONVENTION", [Case("your prediction", rubric=one_of("all", "exclude", "it depends"))], call=False)
 ### BEGIN HIDDEN TESTS
 check("HIGHER_CONVENTION", [Case("the convention with the higher Recall@1 on the same retrievals",
                                  expect="exclude")], call=False)
