@@ -384,20 +384,25 @@ UNDERSTANDING = {   # notebook: the graded exercises in which the student predic
     "04_netvlad.ipynb": ["ex-04-zero-predict", "ex-04-zero-descriptor"],
     "05_salad.ipynb": ["ex-05-dustbin-predict", "ex-05-dustbin-mass"],
     "06_gds.ipynb": ["ex-06-cap-predict", "ex-06-r1-cap"],
-    "07_clique_mining.ipynb": ["ex-07-never-drawn", "ex-07-pick-batch"],
+    "07_clique_mining.ipynb": ["ex-07-tau-predict", "ex-07-pick-batch"],
     "08_reproduction.ipynb": ["ex-08-convention-predict", "ex-08-conventions"],
 }
 
 
 def test_every_graded_notebook_has_understanding_exercises_checked_by_tolerance_or_rubric():
+    """Each notebook: a prediction graded by a rubric (a choice), then a measurement graded with a tolerance."""
     assert sorted(UNDERSTANDING) == [p.name for p in COURSE]
     for path in COURSE:
         specs = {e.id: e for e in exercise_specs(nbformat.read(path, as_version=4), path.name)}
-        for eid in UNDERSTANDING[path.name]:
+        predict, measure = UNDERSTANDING[path.name]
+        for eid in (predict, measure):
             assert eid in specs, f"{path.name}: no graded exercise {eid}"
-            cases = [c for chk in specs[eid].checks for c in chk.cases]
-            assert any(c.rubric is not None or c.atol > 1e-6 or c.rtol > 1e-6 or isinstance(c.expect, str)
-                       for c in cases), f"{path.name} {eid}: no tolerance or rubric"
+        cases = [c for chk in specs[predict].checks for c in chk.cases]
+        assert all(not chk.call for chk in specs[predict].checks), f"{path.name} {predict}: not a prediction"
+        assert all(c.rubric is not None or isinstance(c.expect, str) for c in cases), f"{path.name} {predict}"
+        cases = [c for chk in specs[measure].checks for c in chk.cases]
+        assert all(chk.call for chk in specs[measure].checks), f"{path.name} {measure}: not a measurement"
+        assert any(c.rubric is not None or not isinstance(c.expect, (str, bool)) for c in cases), f"{path.name} {measure}"
 
 
 # one library route per exercise, pasted as the student's answer: each must score 0 because of vpr_nb
@@ -453,7 +458,7 @@ def test_course_exercise_instructor_full_stub_zero_library_shortcut_zero(path, t
 
 # --- cells an exercise tells the student to edit ---------------------------------------------------------
 
-EDIT = re.compile(r"(?:[Ss]et|run with|[Cc]hange)\s+`?([A-Z][A-Z_0-9]+)\s*=")
+EDIT = re.compile(r"(?:[Ss]ets?|run with|[Cc]hange)\s+(?:`|<code>)?([A-Z][A-Z_0-9]+)\s*=")
 
 
 def _assigned(cell, name: str) -> bool:
@@ -462,7 +467,8 @@ def _assigned(cell, name: str) -> bool:
     except SyntaxError:
         return False
     return any(isinstance(n, (ast.Assign, ast.AnnAssign)) and any(
-        isinstance(t, ast.Name) and t.id == name for t in (n.targets if isinstance(n, ast.Assign) else [n.target]))
+        isinstance(t, ast.Name) and t.id == name
+        for target in (n.targets if isinstance(n, ast.Assign) else [n.target]) for t in ast.walk(target))
         for n in tree.body)
 
 
@@ -471,8 +477,8 @@ def test_every_cell_an_exercise_tells_the_student_to_edit_is_editable(path, tmp_
     out = generate(path.parent, tmp_path, pattern=path.name)
     stu = nbformat.read(out[0], as_version=4)
     named = 0
-    for md in (c for c in stu.cells if c.cell_type == "markdown"):
-        for item in re.split(r"\n\s*\d+\.\s", md.source):
+    for text in (c for c in stu.cells if c.cell_type in ("markdown", "code")):
+        for item in re.split(r"\n\s*\d+\.\s", text.source):
             for name in EDIT.findall(item):
                 named += 1
                 cells = [c for c in stu.cells if c.cell_type == "code" and _assigned(c, name)]
@@ -483,3 +489,23 @@ def test_every_cell_an_exercise_tells_the_student_to_edit_is_editable(path, tmp_
                     f"student version and the exercise does not say to do it in a new cell: {item[:160]!r}")
     assert named or path.name not in ("02_triplet_baseline.ipynb", "03_distance_ranking_weighted_loss.ipynb",
                                       "08_reproduction.ipynb")
+
+
+@pytest.mark.slow
+def test_grade_class_on_a_generated_class_of_a_course_notebook(tmp_path):
+    """bench/bench_grade_class.py's class, smaller: correct, wrong, cheating, crashing and unanswered
+    submissions of notebook 06, graded by grade-class; every student's points as their kind says."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_grade_class", ROOT / "bench" / "bench_grade_class.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    source = next((ROOT / "notebooks").glob("06_*.ipynb"))
+    (tmp_path / "source").mkdir()
+    (tmp_path / "source" / source.name).write_bytes(source.read_bytes())
+    plan = bench.make_class(source, tmp_path / "submitted", 10)
+    assert {"correct", "wrong", "cheat-abs", "crash-exit", "cheat-traceback", "stub"} <= {k for k, _ in plan.values()}
+    rows = grade_class(tmp_path / "submitted", tmp_path / "source", tmp_path / "scores.csv", timeout=30, jobs=2,
+                       log=lambda *_: None)
+    assert len(rows) == 10 * 3
+    assert bench.check_csv(tmp_path / "scores.csv", plan) == []

@@ -61,10 +61,10 @@ from .grading.data import DataError
 from .grading.data import read as read_data
 from .grading.data import write as write_data
 from .grading.owncode import assert_own_code, library_references, own_code_message, source_violations
-from .grading.spec import Case, Check, check, collect
+from .grading.spec import Case, Check, check, collect, one_of
 
 __all__ = ["Case", "Grade", "assert_own_code", "check", "exercises", "generate", "grade", "grade_class",
-           "library_references", "student_version"]
+           "library_references", "one_of", "student_version"]
 
 BEGIN_SOLUTION, END_SOLUTION = "### BEGIN SOLUTION", "### END SOLUTION"
 BEGIN_HIDDEN, END_HIDDEN = "### BEGIN HIDDEN TESTS", "### END HIDDEN TESTS"

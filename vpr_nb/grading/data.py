@@ -144,6 +144,8 @@ def write(value, folder, stem: str) -> None:
 def read(folder, stem: str, make_tensor=None):
     """Read a value written by :func:`write`, refusing anything that is not plain data. Raises DataError."""
     folder = Path(folder)
+    if folder.is_symlink() or not folder.is_dir():
+        raise DataError(f"{folder.name} is missing (or not a plain folder)")
     jpath, npath = folder / f"{stem}.json", folder / f"{stem}.npz"
     for p, limit in ((jpath, MAX_JSON_BYTES), (npath, MAX_NPZ_BYTES)):
         if p.is_symlink() or not p.is_file():

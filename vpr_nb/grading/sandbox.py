@@ -3,8 +3,9 @@
 Two backends (``VPR_NB_SANDBOX=bwrap|process`` forces one; by default the first that works here):
 
 * ``bwrap`` (Debian's ``bubblewrap``): a new mount, PID, network, IPC and UTS namespace. The program sees
-  a read-only system (``/usr``, ``/etc``, the Python installation, the ``vpr_nb`` package and nothing
-  else of the machine: no instructor notebooks, no other submission, no grades file, no home folder),
+  a read-only system (``/usr``, ``/etc``, the Python installation, the ``vpr_nb`` package and its
+  ``data_fixtures/`` and nothing else of the machine: no instructor notebooks, no other submission, no
+  grades file, no home folder),
   an empty ``/tmp``, no network, and its throwaway folder as the only writable place. As root it runs as
   a fresh user id per submission, without capabilities. When its first process ends, or bwrap or the
   grader dies (``--die-with-parent``), the kernel kills every process of the PID namespace, including
@@ -71,10 +72,14 @@ class Outcome:
 
 
 def _python_roots() -> list[Path]:
-    """What the sandboxed Python needs to see: its installation and the vpr_nb package, nothing else."""
+    """What the sandboxed Python needs to see: its installation, the vpr_nb package and its data
+    (``data_fixtures/``: the course backbone), nothing else."""
     pkg = Path(__file__).resolve().parents[1]                      # .../vpr_nb
     roots = {Path(sys.prefix).resolve(), Path(sys.base_prefix).resolve(), Path(sys.executable).resolve().parent,
              pkg}
+    fixtures = pkg.parent / "data_fixtures"                        # the package's data (the course backbone)
+    if fixtures.is_dir():
+        roots.add(fixtures.resolve())
     for entry in sys.path:                                         # site-packages outside the prefixes
         p = Path(entry).resolve() if entry else None
         if p is not None and p.is_dir() and "site-packages" in p.parts:
@@ -391,10 +396,10 @@ def _run(args: list[str], workdir: Workdir, limits: Limits, backend: str, env: d
     timed_out = False
     try:
         with open(log_path, "wb") as log:
-            proc = subprocess.Popen(cmd, cwd=workdir.path, env=full_env, stdin=subprocess.DEVNULL, stdout=log,
-                                    stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=preexec,
-                                    close_fds=True, **kw)
-            with _live_lock:
+            with _live_lock:          # registered before another run's cleanup can take it for an orphan
+                proc = subprocess.Popen(cmd, cwd=workdir.path, env=full_env, stdin=subprocess.DEVNULL, stdout=log,
+                                        stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=preexec,
+                                        close_fds=True, **kw)
                 _live_children.add(proc.pid)
             try:
                 proc.wait(timeout=limits.wall_s)

@@ -85,6 +85,16 @@ class Case:
         return None
 
 
+def one_of(*choices: str) -> Callable[[Any], str | None]:
+    """A rubric for a prediction: the answer must be one of ``choices`` (exactly, as strings)."""
+    if not choices or not all(isinstance(c, str) for c in choices):
+        raise ValueError(f"one_of needs the choices as strings, got {choices!r}")
+
+    def rubric(answer):
+        return None if answer in choices else f"expected one of {', '.join(map(repr, choices))}, got {answer!r:.80}"
+    return rubric
+
+
 @dataclass
 class Check:
     """The cases of one name of the student's solution (a function to call, or a value to read)."""
