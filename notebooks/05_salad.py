@@ -720,7 +720,7 @@ def dustbin_mass(scores, z, iters):
     s_bar = np.vstack([scores, np.full((1, features), float(z))])
     log_a = np.log(np.concatenate([np.ones(clusters), [features - clusters]]))
     log_u, log_v = np.zeros(clusters + 1), np.zeros(features)
-    for _ in range(iters):
+    for _step in range(iters):
         log_u = log_a - np.logaddexp.reduce(s_bar + log_v[None, :], axis=1)
         log_v = -np.logaddexp.reduce(s_bar + log_u[:, None], axis=0)      # log b = 0
     plan = np.exp(s_bar + log_u[:, None] + log_v[None, :])

@@ -409,7 +409,8 @@ def test_every_graded_notebook_has_understanding_exercises_checked_by_tolerance_
 SHORTCUTS = {
     "02_triplet_baseline.ipynb": ("ex-02-sq-triplet", "return triplet_loss(q, p, n, margin)"),
     "02_triplet_baseline.ipynb, radius": (
-        "ex-02-radius-measure", "return float(evaluate_descriptors(db, q, db_utm, q_utm, radius, (1,), "
+        "ex-02-radius-measure", "from vpr_nb.evaluation import evaluate_descriptors\n"
+                                "return float(evaluate_descriptors(db, q, db_utm, q_utm, radius, (1,), "
                                 "no_positive='all')[1])"),
     "03_distance_ranking_weighted_loss.ipynb": (
         "ex-03-ce-tau", "return ce_triplet_loss(torch.zeros(d_p.numel(), 1), (d_p / tau).reshape(-1, 1), "
@@ -418,7 +419,8 @@ SHORTCUTS = {
         "ex-04-soft-share", "import vpr_nb.aggregation\ncos = descs @ (cents / np.linalg.norm(cents, axis=1, keepdims=True)).T\n"
                             "top2 = np.sort(cos, axis=1)[:, -2:]\nreturn float(np.mean(alpha * (top2[:, 1] - top2[:, 0]) < np.log(ratio)))"),
     "05_salad.ipynb": ("ex-05-cluster-means", "return (f @ p.T) / p.sum(dim=1) if salad_aggregate else None"),
-    "05_salad.ipynb, dustbin": ("ex-05-dustbin-mass", "plan = sinkhorn(torch.as_tensor(scores)[None], z, iters)[0].exp()\n"
+    "05_salad.ipynb, dustbin": ("ex-05-dustbin-mass", "import torch\nfrom vpr_nb.aggregation import sinkhorn\n"
+                                                      "plan = sinkhorn(torch.as_tensor(scores)[None], z, iters)[0].exp()\n"
                                                       "return float(plan[:-1].sum()), float(plan[-1].sum())"),
     "06_gds.ipynb": ("ex-06-misorder-empirical", 'return misordering_probability(x1, 0.0, 10.0, method="empirical")'),
     "06_gds.ipynb, right numbers": (
@@ -509,3 +511,29 @@ def test_grade_class_on_a_generated_class_of_a_course_notebook(tmp_path):
                        log=lambda *_: None)
     assert len(rows) == 10 * 3
     assert bench.check_csv(tmp_path / "scores.csv", plan) == []
+
+
+@pytest.mark.slow
+def test_nbgrader_generate_assignment_accepts_the_instructor_notebooks(tmp_path):
+    """nbgrader itself (where it installs; it is not in environment.txt) takes the course notebooks unchanged."""
+    pytest.importorskip("nbgrader", reason="nbgrader is not installed (optional: .venv/bin/pip install nbgrader)")
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    source = tmp_path / "source" / "course"
+    source.mkdir(parents=True)
+    for path in COURSE:
+        shutil.copy(path, source / path.name)
+    bindir = str(Path(sys.executable).parent)           # nbgrader runs `alembic` from the environment's bin
+    env = {**os.environ, "PATH": bindir + os.pathsep + os.environ.get("PATH", "")}
+    proc = subprocess.run([sys.executable, "-m", "nbgrader", "generate_assignment", "course", "--force",
+                           f"--CourseDirectory.root={tmp_path}", f"--CourseDirectory.db_url=sqlite:///{tmp_path}/gradebook.db"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    released = sorted(p.name for p in (tmp_path / "release" / "course").glob("*.ipynb"))
+    assert released == [p.name for p in COURSE], proc.stderr[-2000:]
+    for name in released:
+        text = (tmp_path / "release" / "course" / name).read_text()
+        assert BEGIN_SOLUTION not in text and BEGIN_HIDDEN not in text and "assert_own_code" not in text, name
