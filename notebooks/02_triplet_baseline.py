@@ -278,6 +278,10 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
+# **Figure 1.** Learning curves of the recipe: mean training loss per epoch (left) and validation
+# Recall@1 (right). The epoch with the best validation R@1 is the one kept.
+
+# %% [markdown]
 # ### Training health: how to recognise a collapsed run
 #
 # Two numbers that `train` records every epoch tell a healthy run from a collapsed one:
@@ -321,6 +325,11 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
+# **Figure 2.** Training health, the recipe (lr 0.05) beside the same recipe at lr 0.5: the loss divided
+# by the collapsed loss (left; 1 means no better than one descriptor for every image), the mean pairwise
+# cosine of the validation database descriptors (middle) and validation Recall@1 (right).
+
+# %% [markdown]
 # With the large learning rate the loss stays close to its collapsed value and the descriptors crowd
 # together (mean cosine near 1) while validation recall falls: the network maps every street view to
 # nearly the same vector, and every triplet again costs about the margin. The recipe's loss drops well
@@ -362,6 +371,10 @@ plots.plot_recalls(results, title="city tiny test")
 plt.show()
 
 # %% [markdown]
+# **Figure 3.** Test Recall@N on the tiny city: raw pixels, the untrained and the trained small CNN + GeM,
+# and the frozen course backbone + GeM.
+
+# %% [markdown]
 # ### What the trained model retrieves
 #
 # Query (grey frame), then its top-5 database images framed green (within 25 m) or red, labelled with
@@ -378,6 +391,11 @@ plots.retrieval_grid(te.q_images, te.db_images, idx, pos, show, k=5, distances_m
 plt.show()
 print(f"wrong top-1: {int((~correct).sum())} of {len(correct)}; median distance of those wrong answers: "
       f"{np.median(dist_m[~correct, 0]):.0f} m")
+
+# %% [markdown]
+# **Figure 4.** Two test queries solved at rank 1 and two that are not: each row is the query (grey frame)
+# and its top-5 database images, framed green within 25 m and red otherwise, labelled with their true
+# distance.
 
 # %% [markdown]
 # ### Mining, revisited with the trained network
@@ -426,6 +444,11 @@ if ABLATIONS:
 else:
     print("ablations skipped in the ci profile (run with PROFILE = 'reproduce', or see Exercise 1)")
 
+# %% [markdown]
+# **Figure 5** (`reproduce` profile only; the `ci` profile prints that it skipped the ablations).
+# Learning curves of the recipe and of the two ablations: training loss (left) and validation Recall@1
+# (right).
+
 # %%
 record("02_triplet_baseline", {
     "epochs": EPOCHS,
@@ -451,35 +474,122 @@ record("02_triplet_baseline", {
 # for `q`, `p` of shape (B, D) and `n` of shape (B, M, D): the sum over all B·M triplets of
 # $\max(0,\, d(q,p)^2 - d(q,n_j)^2 + m)$ with Euclidean $d$, as a 0-d torch tensor, in plain torch (no
 # `vpr_nb`, no `torch.nn.TripletMarginLoss`). The hidden tests also check what it means for unit vectors,
-# where $d^2 = 2 - 2\cos$.
+# where $d^2 = 2 - 2\cos$. Grading runs only the notebook's import cells and your solution cell, so the
+# cell must not use anything else defined in this notebook.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-02-sq-triplet", "locked": false, "schema_version": 3, "solution": true}
 def my_sq_triplet_loss(q, p, n, margin=0.1):
     ### BEGIN SOLUTION
-    d2_qp = (q - p).pow(2).sum(-1)                       # (B,)
-    d2_qn = (q[:, None, :] - n).pow(2).sum(-1)           # (B, M)
-    return torch.relu(d2_qp[:, None] - d2_qn + margin).sum()
+    pos_sq = torch.sum((q - p) ** 2, dim=1)              # (B,)
+    neg_sq = torch.sum((q.unsqueeze(1) - n) ** 2, dim=2)  # (B, M)
+    return torch.clamp(pos_sq.unsqueeze(1) - neg_sq + margin, min=0.0).sum()
     ### END SOLUTION
 
 
 # %% nbgrader={"grade": true, "grade_id": "ex-02-sq-triplet-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import torch
+
+from vpr_nb.assignments import Case, check
+
 q1, p1, n1 = torch.tensor([[0.0, 0.0]]), torch.tensor([[1.0, 0.0]]), torch.tensor([[[0.0, 1.0], [2.0, 0.0]]])
-got = my_sq_triplet_loss(q1, p1, n1, 0.5)
-assert torch.is_tensor(got) and got.dim() == 0, f"expected a 0-d torch tensor, got {type(got).__name__} {getattr(got, 'shape', '')}"
-assert abs(got.item() - 0.5) < 1e-6, (f"one query, positive at d^2 = 1, negatives at d^2 = 1 and 4, margin 0.5: "
-                                      f"expected (1 - 1 + 0.5) + 0 = 0.5, got {got.item():.6f}")
+check("my_sq_triplet_loss", [Case("one query, positive at d^2 = 1, negatives at d^2 = 1 and 4, margin 0.5 "
+                                  "(so (1 - 1 + 0.5) + 0)", (q1, p1, n1, 0.5), expect=torch.tensor(0.5))],
+      forbid=("TripletMarginLoss", "triplet_margin_loss"))
 ### BEGIN HIDDEN TESTS
-from vpr_nb.assignments import assert_own_code
-assert_own_code(my_sq_triplet_loss, forbid_names=("TripletMarginLoss", "triplet_margin_loss"))
 g = torch.Generator().manual_seed(1)
 q_b, p_b, n_b = 3 * torch.randn(5, 6, generator=g), 3 * torch.randn(5, 6, generator=g), 3 * torch.randn(5, 2, 6, generator=g)
-ref = torch.relu(((q_b - p_b) ** 2).sum(1)[:, None] - ((q_b[:, None] - n_b) ** 2).sum(2) + 2.0).sum().item()
-got = my_sq_triplet_loss(q_b, p_b, n_b, 2.0).item()
-assert abs(got - ref) < 1e-4 * max(1.0, ref), f"5 queries x 2 negatives, margin 2 (not unit vectors): expected {ref:.4f}, got {got:.4f}"
+ref = torch.relu(((q_b - p_b) ** 2).sum(1)[:, None] - ((q_b[:, None] - n_b) ** 2).sum(2) + 2.0).sum()
 q_u, p_u, n_u = (torch.nn.functional.normalize(t, dim=-1) for t in (q_b, p_b, n_b))
-cos_form = torch.relu(2 * (q_u[:, None] * n_u).sum(-1) - 2 * (q_u * p_u).sum(-1)[:, None] + 0.1).sum().item()
-got = my_sq_triplet_loss(q_u, p_u, n_u, 0.1).item()
-assert abs(got - cos_form) < 1e-5, f"unit vectors: expected the cosine form sum max(0, 2 cos(q,n) - 2 cos(q,p) + m) = {cos_form:.6f}, got {got:.6f}"
+cos_form = torch.relu(2 * (q_u[:, None] * n_u).sum(-1) - 2 * (q_u * p_u).sum(-1)[:, None] + 0.1).sum()
+check("my_sq_triplet_loss", [
+    Case("5 queries x 2 negatives, margin 2 (not unit vectors)", (q_b, p_b, n_b, 2.0), expect=ref,
+         atol=1e-4, rtol=1e-4),
+    Case("unit vectors: expected the cosine form sum max(0, 2 cos(q,n) - 2 cos(q,p) + m)", (q_u, p_u, n_u, 0.1),
+         expect=cos_form, atol=1e-5)], forbid=("TripletMarginLoss", "triplet_margin_loss"))
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Graded exercise: predict, then measure Recall@1 at a smaller positive radius
+#
+# A query counts as solved at rank 1 when its nearest database descriptor lies within the positive radius
+# of the query (25 m on the test split). Suppose the radius shrinks to 10 m while the descriptors stay the
+# same.
+#
+# **Predict first** (before you measure anything): can Recall@1 rise, does it fall or stay the same, or can
+# it go either way, depending on the model? Replace the `raise` in the cell below by
+# `RADIUS_PREDICTION = "..."` with one of `"rises"`, `"falls or stays"`, `"either way"`.
+
+# %% tags=["grade-deps:ex-02-radius-predict", "grade-deps:ex-02-radius-measure"]
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
+
+# %% nbgrader={"grade": false, "grade_id": "ex-02-radius-predict", "locked": false, "schema_version": 3, "solution": true}
+### BEGIN SOLUTION
+RADIUS_PREDICTION = "falls or stays"
+### END SOLUTION
+
+# %% nbgrader={"grade": true, "grade_id": "ex-02-radius-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check, one_of
+
+check("RADIUS_PREDICTION", [Case("your prediction", rubric=one_of("rises", "falls or stays", "either way"))], call=False)
+### BEGIN HIDDEN TESTS
+check("RADIUS_PREDICTION", [Case("Recall@1 when the positive radius shrinks from 25 m to 10 m",
+                                 expect="falls or stays")], call=False)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# **Then measure.** Write `recall_at_1(db, q, db_utm, q_utm, radius)` for L2-normalised database and query
+# descriptors (numpy arrays [N, D] and [Q, D]) and their positions in metres ([N, 2] and [Q, 2]): the fraction
+# of queries whose nearest database descriptor (Euclidean distance) lies at most `radius` metres from the
+# query, as a Python float. A query with no database image within `radius` counts as a miss (NetVLAD's
+# convention). Plain numpy (no `vpr_nb`, no faiss). Then, in a new cell, measure it on the trained model's
+# test descriptors, `recall_at_1(db_d, q_d, te.db_utm, te.q_utm, r)` for `r` = 25, 10 and 5: by how much does
+# R@1 change, and does that match your prediction and your reason for it?
+
+# %% nbgrader={"grade": false, "grade_id": "ex-02-radius-measure", "locked": false, "schema_version": 3, "solution": true}
+def recall_at_1(db, q, db_utm, q_utm, radius):
+    ### BEGIN SOLUTION
+    sq_dist = np.sum(q ** 2, axis=1)[:, None] - 2.0 * q @ db.T + np.sum(db ** 2, axis=1)[None, :]
+    nearest = np.argmin(sq_dist, axis=1)
+    metres = np.linalg.norm(np.asarray(q_utm) - np.asarray(db_utm)[nearest], axis=1)
+    return float(np.mean(metres <= radius))
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-02-radius-measure-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+toy_db, toy_q = np.array([[1.0, 0.0], [0.0, 1.0]]), np.array([[0.8, 0.6]])
+toy_db_utm, toy_q_utm = np.array([[0.0, 0.0], [20.0, 0.0]]), np.array([[15.0, 0.0]])
+# the query's nearest descriptor is database image 0, which lies 15 m away: solved at 25 m, missed at 10 m
+check("recall_at_1", [Case(f"one query whose top-1 lies 15 m away, radius {r:g} m", (toy_db, toy_q, toy_db_utm,
+                                                                                      toy_q_utm, r), expect=want)
+                      for r, want in ((25.0, 1.0), (10.0, 0.0))])
+### BEGIN HIDDEN TESTS
+rng = np.random.default_rng(7)
+db_xy = np.stack([5.0 * np.arange(60), np.zeros(60)], axis=1)          # a database image every 5 m
+at = rng.integers(0, 60, 40)
+q_xy = db_xy[at] + rng.normal(0.0, 2.0, (40, 2))
+q_xy[:3] += 500.0                                                      # three queries far from every image
+base = rng.normal(size=(60, 8))
+db_desc = base / np.linalg.norm(base, axis=1, keepdims=True)
+shifted = np.clip(at + rng.integers(-3, 4, 40), 0, 59)                 # descriptors of a nearby image, noisy
+qd = db_desc[shifted] + 0.3 * rng.normal(size=(40, 8))
+q_desc = qd / np.linalg.norm(qd, axis=1, keepdims=True)
+
+
+def reference(radius):
+    solved = 0
+    for i in range(len(q_desc)):
+        j = min(range(len(db_desc)), key=lambda k: float(np.linalg.norm(q_desc[i] - db_desc[k])))
+        solved += float(np.hypot(*(q_xy[i] - db_xy[j]))) <= radius
+    return solved / len(q_desc)
+
+
+check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 queries far from all), radius {r:g} m",
+                           (db_desc, q_desc, db_xy, q_xy, r), expect=reference(r), atol=1e-9)
+                      for r in (25.0, 10.0, 5.0, 0.5)])
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -487,16 +597,35 @@ assert abs(got - cos_form) < 1e-5, f"unit vectors: expected the cosine form sum 
 #
 # 1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with
 #    `num_candidates=M`. How many epochs does each need to reach the recipe's validation R@1?
+#    <details><summary>Hint</summary><code>train_recipe(**kw)</code> passes its keywords to
+#    <code>TripletSource</code>: compare <code>train_recipe()</code> and
+#    <code>train_recipe(max_heading_diff=HEADING_DIFF, num_candidates=M)</code> with the recipe, epoch by epoch,
+#    through <code>[e["val"][1] for e in hist.epochs]</code>. Use the <code>reproduce</code> budget
+#    (set <code>PROFILE = "reproduce"</code> in the parameters cell): 5 epochs are too few to see a difference.</details>
 # 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on plain
 #    L2). What fraction of mined triplets violates the margin at the end of training in each case?
+#    <details><summary>Hint</summary>Copy <code>train_recipe</code> and pass <code>TripletLoss(margin=0.3)</code>
+#    to <code>TripletSource</code>. <code>mining_table(net, label)</code> counts violations with the global
+#    <code>MARGIN</code>, so set <code>MARGIN = 0.3</code> in a new cell before calling it (and back to 0.1
+#    afterwards).</details>
 # 3. **Squared distances, trained.** Train the recipe with the graded exercise's loss: pass `TripletSource` a
 #    subclass of `vpr_nb.losses.TripletFamilyLoss` whose `__call__(q, p, n, geo_qp=None)` returns
 #    `my_sq_triplet_loss(q, p, n, margin)`. Which margin on squared distances makes it select the same
 #    violating triplets as $m = 0.1$ on distances, for a positive at $d(q, p) = 0.5$?
+#    <details><summary>Hint</summary>A negative violates Eq. (3) when $d_n < d_p + m$ and the squared form when
+#    $d_n^2 < d_p^2 + m'$. Write both boundaries for $d_p = 0.5$ and ask when they are the same $d_n$. Does one
+#    $m'$ work for every $d_p$?</details>
 # 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is best
 #    here? (Notebook 03 measures it with several seeds.)
+#    <details><summary>Hint</summary>Copy <code>train_recipe</code> with the pooling as an argument and compare
+#    <code>evaluate_model(net, te, NS)</code>. One seed of from-scratch training moves R@1 by several points:
+#    run two or three seeds per pooling before you rank them.</details>
 # 5. **Semi-hard negatives.** FaceNet trains on negatives that are farther than the positive but within
 #    the margin. Implement that selection from the output of `mine_triplets` and compare.
+#    <details><summary>Hint</summary><code>mine(300)</code> returns arrays <code>query</code>,
+#    <code>positive</code> and <code>negatives</code> (indices, -1 where missing); compute $d(q, p)$ and
+#    $d(q, n)$ from <code>q_desc</code> and <code>db_desc</code> as <code>hinge</code> does, and keep the
+#    negatives with $d(q,p) < d(q,n) < d(q,p) + m$. How many queries still have one?</details>
 #
 # ## Takeaways
 #
@@ -515,7 +644,27 @@ assert abs(got - cos_form) < 1e-5, f"unit vectors: expected the cosine form sum 
 # * The frozen course backbone, pretrained on other worlds, is compared with the from-scratch model in
 #   the test table above. Notebooks 03–07 fine-tune it, as the papers fine-tune a pretrained backbone,
 #   and change only the loss, the aggregator or the batches.
+
+# %% [markdown]
+# ## Self-check
 #
+# 1. A triplet's negative is already farther from the query than $d(q, p) + m$. What does that triplet
+#    contribute to the gradient of Eq. (3), and why does that make mining necessary?
+#    <details><summary>Answer</summary>Nothing: the hinge is at zero, so the loss and its gradient are zero.
+#    Once the network separates places, almost every random negative is like that, so without mining the
+#    hard (look-alike) negatives the batches stop teaching anything (the trained mining table).</details>
+# 2. Why does this notebook keep only potential positives that face the query's way, when NetVLAD's rule on
+#    Pittsburgh does not?
+#    <details><summary>Answer</summary>Every place here is photographed in 4 headings, so a potential
+#    positive 5 m away often shows other facades; an untrained network cannot tell which view shares the
+#    query's content. NetVLAD's VGG16 starts from ImageNet weights that already pick the right view.</details>
+# 3. Which two numbers that <code>train</code> records tell you a run has collapsed, and what is the collapsed
+#    loss of Eq. (3) per query with $M = 5$ and $m = 0.1$?
+#    <details><summary>Answer</summary>A loss that stays near the collapsed loss, $M \cdot m = 0.5$ per query
+#    (every triplet costs exactly the margin when all descriptors are equal), and a mean pairwise cosine of the
+#    validation descriptors close to 1.</details>
+
+# %% [markdown]
 # ## References
 #
 # * J. Xiong, Y. Xu, Z. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place

@@ -142,11 +142,25 @@ axes[1].legend()
 fig.tight_layout()
 plt.show()
 
+# %% [markdown]
+# **Figure 1.** The geographic weight of Eq. (4) at σ = 800 m, ε = 0.1: from 0 to 1000 m (left) and over
+# the positives' range, 0 to 25 m, with the 10 m training radius (right).
+
 # %%
 # NBVAL_IGNORE_OUTPUT
 # (an interactive widget: its rendering depends on the front end)
-distance_weight_explorer(SIGMA, EPS)
+from IPython.display import display
 
+explorer = distance_weight_explorer(SIGMA, EPS)
+display(explorer)
+print("The default state, drawn once more as a static figure (what a reader without a kernel sees):")
+explorer.f(**explorer.kwargs)
+
+
+# %% [markdown]
+# **Figure 2.** The weight explorer: two sliders (σ on a log scale, ε) redraw Eq. (4) in JupyterLab;
+# the figure and line printed under them are its default state (σ = 800 m, ε = 0.1), stored for readers
+# without a kernel.
 
 # %% [markdown]
 # With σ = 800 m the positives all sit on the flat start of the curve: the output above shows $w$ going
@@ -383,6 +397,12 @@ print(f"real triplets (initial NetVLAD model): d_n − d_p from {gap.min():.3f} 
       f"and {np.mean(gap < MARGIN):.3f} of them violate the margin {MARGIN}")
 
 # %% [markdown]
+# **Figure 3.** Left: $\hat d_n$ of Eqs. (5)–(6) over the whole reachable range of $d_n - d_p$, without and with a
+# temperature τ = 0.1. Right: the size of each loss's derivative per triplet over the same range (CE-Loss,
+# CE with τ = 0.1, T-Loss at both margins), over the histogram of $d_n - d_p$ of the real triplets mined with
+# the initial NetVLAD model (grey).
+
+# %% [markdown]
 # Without a temperature the CE loss is almost **linear** in $d_n - d_p$ over the range descriptors can
 # reach: every triplet, hard or already easy, pushes with about the same strength (about ½, from the
 # outputs above), and the loss can never fall below $\log(1 + e^{-2}) \approx 0.13$ per triplet.
@@ -568,6 +588,11 @@ plt.show()
 
 
 # %% [markdown]
+# **Figure 4.** Test R@1 of the Table II analog (left, NetVLAD-16) and the Table III analog (right): mean ±
+# standard deviation over the reproduce profile's seeds (blue; dots are single seeds), the paper's
+# Pittsburgh30k numbers (orange; none for the equal-step rows) and the frozen backbone + GeM (dashed line).
+
+# %% [markdown]
 # ### Verdicts: paired differences over seeds
 #
 # Each line is the per-seed difference of test R@1 between two rows trained from the same initial
@@ -613,48 +638,153 @@ record("03_distance_ranking_weighted_loss", {
 # and a temperature $\tau > 0$: the sum of $-\log \hat d_n$ with
 # $\hat d_n = \frac{e^{d_n/\tau}}{e^{d_p/\tau} + e^{d_n/\tau}}$, as a 0-d tensor, in plain torch (no `vpr_nb`),
 # finite and accurate for large $|d_p - d_n| / \tau$ (the hidden tests use $\tau = 0.01$ and distances of 1000).
+# Grading runs only the notebook's import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-03-ce-tau", "locked": false, "schema_version": 3, "solution": true}
 def my_ce_loss_tau(d_p, d_n, tau=1.0):
     ### BEGIN SOLUTION
-    return torch.nn.functional.softplus((d_p - d_n) / tau).sum()
+    z = (d_p - d_n) / tau
+    return (torch.clamp(z, min=0.0) + torch.log1p(torch.exp(-z.abs()))).sum()   # softplus(z), stable
     ### END SOLUTION
 
 
 # %% nbgrader={"grade": true, "grade_id": "ex-03-ce-tau-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-got = my_ce_loss_tau(torch.tensor([0.7, 0.2]), torch.tensor([0.7, 0.2]), 0.5)
-assert torch.is_tensor(got) and got.dim() == 0, f"expected a 0-d torch tensor, got {type(got).__name__} {getattr(got, 'shape', '')}"
-assert abs(got.item() - 2 * np.log(2)) < 1e-6, (f"d_p == d_n gives d_hat_n = 1/2 at any tau: expected 2 log 2 = "
-                                                 f"{2 * np.log(2):.6f} for two triplets, got {got.item():.6f}")
+import math
+
+import torch
+
+from vpr_nb.assignments import Case, check
+
+check("my_ce_loss_tau", [Case("d_p == d_n gives d_hat_n = 1/2 at any tau, so two triplets cost 2 log 2",
+                              (torch.tensor([0.7, 0.2]), torch.tensor([0.7, 0.2]), 0.5),
+                              expect=torch.tensor(2 * math.log(2)), atol=1e-6)])
 ### BEGIN HIDDEN TESTS
-from vpr_nb.assignments import assert_own_code
-assert_own_code(my_ce_loss_tau)
 g = torch.Generator().manual_seed(3)
 d_p, d_n = torch.rand(6, 4, generator=g), torch.rand(6, 4, generator=g)
-for tau in (1.0, 0.3, 5.0):
-    ref = -torch.log_softmax(torch.stack([d_p, d_n], -1) / tau, -1)[..., 1].sum().item()
-    got = my_ce_loss_tau(d_p, d_n, tau).item()
-    assert abs(got - ref) < 1e-4, f"random distances (6 x 4), tau = {tau}: expected {ref:.5f}, got {got:.5f}"
-big = my_ce_loss_tau(torch.tensor([1000.0, 0.0]), torch.tensor([0.0, 1000.0]), 0.01)
-assert torch.isfinite(big) and abs(big.item() - 1e5) < 1e-2, (f"d_p - d_n = 1000 and -1000 at tau = 0.01: expected "
-                                                             f"1e5 + ~0 (finite), got {big.item()}")
+cases = [Case(f"random distances (6 x 4), tau = {tau}", (d_p, d_n, tau),
+              expect=-torch.log_softmax(torch.stack([d_p, d_n], -1) / tau, -1)[..., 1].sum(), atol=1e-4)
+         for tau in (1.0, 0.3, 5.0)]
+cases.append(Case("d_p - d_n = 1000 and -1000 at tau = 0.01: 1e5 + ~0, finite",
+                  (torch.tensor([1000.0, 0.0]), torch.tensor([0.0, 1000.0]), 0.01), expect=torch.tensor(1e5), atol=1e-2))
+check("my_ce_loss_tau", cases)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Graded exercise: predict, then measure the equal effective step
+#
+# The gradient table above compares each loss's gradient with T-Loss's over the network's parameters. The
+# same question can be asked of the losses themselves, per triplet: with the gap $g = d_n - d_p$, T-Loss's
+# derivative $|\partial L_T / \partial g|$ is 1 for a violated triplet ($g < m$) and 0 otherwise, DW-T-Loss's is
+# $w \cdot \operatorname{sig}(-g)$ with the weight $w$ of Eq. (4) (from Eqs. (8)–(9)). Over a batch, call
+# $\rho$ the ratio of the Euclidean norms of these two vectors of derivatives: DW-T-Loss at learning rate
+# $\eta / \rho$ then takes steps of the same size as T-Loss at $\eta$.
+#
+# **Predict first:** with positives within 10 m, is the equal-step learning rate of DW-T-Loss at
+# $\sigma = 25$ m (the evaluation radius) larger than, smaller than, or the same as at the paper's
+# $\sigma = 800$ m? Replace the `raise` below by `SIGMA_25_STEP = "..."` with one of `"larger"`, `"smaller"`,
+# `"the same"`.
+
+# %% tags=["grade-deps:ex-03-step-predict", "grade-deps:ex-03-equal-step"]
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
+
+# %% nbgrader={"grade": false, "grade_id": "ex-03-step-predict", "locked": false, "schema_version": 3, "solution": true}
+### BEGIN SOLUTION
+SIGMA_25_STEP = "larger"
+### END SOLUTION
+
+# %% nbgrader={"grade": true, "grade_id": "ex-03-step-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check, one_of
+
+check("SIGMA_25_STEP", [Case("your prediction", rubric=one_of("larger", "smaller", "the same"))], call=False)
+### BEGIN HIDDEN TESTS
+check("SIGMA_25_STEP", [Case("the equal-step learning rate of DW-T-Loss at sigma = 25 m, compared with 800 m",
+                             expect="larger")], call=False)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# **Then measure.** Write `equal_step_lr(d_p, d_n, geo, lr, margin=0.1, sigma=800.0, eps=0.1)` for numpy
+# arrays `d_p` [B] (query-positive distances), `d_n` [B, M] (query-negative distances) and `geo` [B] (the
+# query-positive distances in metres): the learning rate $\eta / \rho$ of DW-T-Loss that gives the same step
+# as T-Loss at `lr`, as a Python float, in numpy (no `vpr_nb`). Then try it on the notebook's real triplets
+# (`GAPS` holds their $d_n - d_p$) or on your own numbers, at both values of $\sigma$.
+
+# %% nbgrader={"grade": false, "grade_id": "ex-03-equal-step", "locked": false, "schema_version": 3, "solution": true}
+def equal_step_lr(d_p, d_n, geo, lr, margin=0.1, sigma=800.0, eps=0.1):
+    ### BEGIN SOLUTION
+    gap = np.asarray(d_n, float) - np.asarray(d_p, float)[:, None]
+    t_grad = (gap < margin).astype(float)
+    weight = (1.0 + eps) / (np.asarray(geo, float) / sigma + eps) - 1.0
+    dw_grad = weight[:, None] * 0.5 * (1.0 - np.tanh(gap / 2.0))         # w * sig(-gap)
+    return float(lr * np.linalg.norm(t_grad) / np.linalg.norm(dw_grad))
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-03-equal-step-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+# one query at 0 m from its positive (w = 10), d_p = 0.5, negatives at 0.55 (violated) and 1.0 (not)
+check("equal_step_lr", [Case("d_p = 0.5, d_n = [0.55, 1.0], geo = 0 m, lr 0.05", (np.array([0.5]), np.array([[0.55, 1.0]]),
+                                                                                  np.array([0.0]), 0.05),
+                             expect=0.00810898, rtol=1e-4)])
+### BEGIN HIDDEN TESTS
+rng = np.random.default_rng(11)
+dp_h = rng.uniform(0.3, 0.9, 16)
+dn_h = dp_h[:, None] + rng.normal(0.05, 0.15, (16, 5))
+geo_h = rng.uniform(0.0, 10.0, 16)
+
+
+def reference(dp, dn, geo, lr, margin, sigma, eps):
+    t = [[1.0 if dn[b, j] - dp[b] < margin else 0.0 for j in range(dn.shape[1])] for b in range(len(dp))]
+    w = [(1 + eps) / (geo[b] / sigma + eps) - 1 for b in range(len(dp))]
+    dw = [[w[b] / (1.0 + np.exp(dn[b, j] - dp[b])) for j in range(dn.shape[1])] for b in range(len(dp))]
+    return lr / (np.sqrt(np.sum(np.square(dw))) / np.sqrt(np.sum(np.square(t))))
+
+
+check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, margin {m}, sigma {s:g} m, eps {e}",
+                             (dp_h, dn_h, geo_h, 0.05), {"margin": m, "sigma": s, "eps": e},
+                             expect=reference(dp_h, dn_h, geo_h, 0.05, m, s, e), rtol=1e-4)
+                        for m, s, e in ((0.1, 800.0, 0.1), (0.1, 25.0, 0.1), (0.3, 100.0, 0.5))])
 ### END HIDDEN TESTS
 
 # %% [markdown]
 # ## Exercises
 #
-# 1. **σ that ranks.** Set `SIGMA = 25` (the evaluation radius) and rerun the gradient measurement and
-#    one seed of the tables. Does the weight now do more than rescale the loss?
+# 1. **σ that ranks.** Add a new cell right after the imports cell (which is locked in the student version)
+#    that sets `SIGMA = 25.0` (the evaluation radius), then rerun the cells below it: the gradient
+#    measurement and one seed of the tables. Does the weight now do more than rescale the loss?
+#    <details><summary>Hint</summary>First look at the numbers: <code>distance_weight_curve(25.0, EPS,
+#    marks=(0.0, 10.0)).relative_spread</code> says how much the weight changes over the training radius
+#    (compare with σ = 800 m). Then read the cosine column of the gradient table: a weight that ranks the
+#    positives turns the gradient's direction, not only its length.</details>
 # 2. **A temperature for Eq. (5), trained.** Retrain CE-Loss with the graded exercise's temperature (τ = 0.1)
 #    at its equal step. Does it now behave like T-Loss? Why would it (look at the softmax plot)?
+#    <details><summary>Hint</summary>Subclass <code>vpr_nb.losses.TripletFamilyLoss</code> with a
+#    <code>__call__(q, p, n, geo_qp=None)</code> that computes the distances as <code>ce_loss_by_hand</code>
+#    does and returns <code>my_ce_loss_tau(d_p, d_n, 0.1)</code>; put it in a copy of <code>run</code>. Its
+#    gradient is roughly 1/τ times CE-Loss's, so measure its ratio as <code>gradient_ratios</code> does
+#    before you choose its learning rate.</details>
 # 3. **Negative weights.** With σ = 8 m, a positive at 9 m gets $w < 0$. What does a negative weight do
 #    to a violated triplet? Should Eq. (4) be clipped at 0?
+#    <details><summary>Hint</summary>Write the W-T-Loss term $w \cdot \max(0, d_p - d_n + m)$ with $w < 0$ and
+#    ask which way gradient descent moves $d_n$ and $d_p$. Then ask whether an image 9 m away is a wrong
+#    positive or just a far one.</details>
 # 4. **The paper's margin.** Train T-Loss with `margin = 0.1 ** 0.5` (pytorch-NetVlad's effective margin).
 #    Does T-Loss move, and does the DW-T − T gap?
+#    <details><summary>Hint</summary><code>run</code> reads its margin from <code>EXPERIMENT["margin"]</code>:
+#    train with a copy of <code>run</code> that reads <code>{**EXPERIMENT, "margin": 0.1 ** 0.5}</code> instead,
+#    on the same seeds, and compare the paired seeds with <code>results.paired_verdict</code>.</details>
 # 5. **Seeds.** From the committed spread, how many seeds would you need to resolve a 0.01 difference in
 #    R@1 at two standard errors? Compare with the paper's single runs.
+#    <details><summary>Hint</summary>The standard error of a mean paired difference over $n$ seeds is
+#    $s_d / \sqrt n$, with $s_d$ the standard deviation of the per-seed differences (use
+#    <code>res["rows"][name]["R@1"]</code> for two rows). Solve $2 s_d / \sqrt n \le 0.01$ for $n$.</details>
 # 6. **Best lr per loss.** Sweep the learning rate of each loss over {¼, ½, 1, 2, 4} × its equal-step
 #    rate on the validation split and compare the best of each.
+#    <details><summary>Hint</summary><code>run(agg, loss, factor, seed, epochs, split)</code> returns the test
+#    recalls and the history; choose each loss's factor by <code>hist.best_recall</code> (validation) and only
+#    then look at its test R@1, or the comparison is tuned on the test set.</details>
 #
 # ## Takeaways
 #
@@ -684,16 +814,34 @@ assert torch.isfinite(big) and abs(big.item() - 1e5) < 1e-2, (f"d_p - d_n = 1000
 # * **Fine-tuning NetVLAD on the course backbone is fragile at this budget.** T-Loss + NetVLAD-16 gains
 #   clearly over the k-means-initialised NetVLAD, but after 4 epochs its R@1 is within 2 SE of the frozen
 #   backbone + GeM, and one seed in five collapsed (mean cosine ≈ 1: every image gets the same
-#   descriptor; the "collapsed" column). It is far from the 0.85 the issue aimed at.
+#   descriptor; the "collapsed" column).
 # * **Seeds matter more than the paper's gaps.** The seed-to-seed standard deviation of T-Loss's R@1 is
 #   an order of magnitude above the 1-point differences of the paper's single runs: without paired seeds
 #   and standard errors no ordering of these losses could be claimed, here or from one run each.
+
+# %% [markdown]
+# ## Self-check
 #
+# 1. Why is W-T-Loss at σ = 800 m, to first order, T-Loss with a larger learning rate?
+#    <details><summary>Answer</summary>Over the positives (all within 10 m) Eq. (4) hardly changes, from 10 at
+#    0 m to 8.8 at 10 m, so the loss is T-Loss times a nearly constant factor; under SGD a constant factor on
+#    the loss is the same factor on the learning rate. The gradient table shows it: cosine 1 with T-Loss, about
+#    9 times as long.</details>
+# 2. On L2-normalised descriptors, within which values does $\hat d_n$ of Eqs. (5)–(6) stay, and what does
+#    that do to CE-Loss?
+#    <details><summary>Answer</summary>$d_n - d_p \in [-2, 2]$, so $\hat d_n \in [0.12, 0.88]$: the loss is
+#    nearly linear in $d_n - d_p$ and pushes every triplet with about the same strength, violated or not, and it
+#    can never fall below $\log(1 + e^{-2}) \approx 0.13$ per triplet.</details>
+# 3. Why would one training run per loss not be enough to rank these losses here?
+#    <details><summary>Answer</summary>The seed-to-seed spread of R@1 is an order of magnitude larger than the
+#    1-point differences between the paper's losses; only paired seeds and the standard error of their
+#    differences (the verdicts) can say whether one loss is better.</details>
+
+# %% [markdown]
 # ## References
 #
 # * J. Xiong, W. Xu, Z. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place
-#   Recognition* (the DW-T-Loss paper; Tables II and III are quoted above from
-#   `/work/shared/reference/paper_numbers.md`).
+#   Recognition* (the DW-T-Loss paper; its Tables II and III are quoted above).
 # * R. Arandjelović, P. Gronát, A. Torii, T. Pajdla, J. Sivic, *NetVLAD: CNN architecture for weakly
 #   supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247);
 #   code: [Relja/netvlad](https://github.com/Relja/netvlad) (MATLAB) and

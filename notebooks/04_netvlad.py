@@ -201,6 +201,11 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
+# **Figure 1.** Soft assignment of Eq. (3) on the toy 2-D vocabulary at α = 0.3, 3 and 30: each point of the
+# plane is coloured by its weights for the three clusters (as RGB), with the toy descriptors (black) and the
+# centroids (white stars). A large α approaches VLAD's hard assignment.
+
+# %% [markdown]
 # ## Use `vpr_nb`: the same layer from the library
 #
 # `vpr_nb.aggregation.NetVLAD` computes Eq. (4) for a whole batch with one `bmm` (no loop over
@@ -286,8 +291,8 @@ assert torch.equal(course_backbone(final_relu=False)(x), before)
 #
 # As in the NetVLAD code, we sample local features of training images, L2-normalise them, run faiss
 # k-means and compute $\alpha$ with Eq. (6). `vpr_nb.aggregation.sample_local_descriptors` never draws an
-# exactly-zero feature (it has no direction to cluster; before the fix, such features gave a zero centroid
-# and `init_netvlad` failed on the ReLU output), and `vpr_nb.models.init_netvlad` packages the same step.
+# exactly-zero feature (it has no direction to cluster, and a zero centroid would break the layer on the
+# ReLU output), and `vpr_nb.models.init_netvlad` packages the same step.
 
 # %%
 KM = EXPERIMENT["netvlad"]["kmeans"]
@@ -493,6 +498,10 @@ plt.show()
 
 
 # %% [markdown]
+# **Figure 2.** Reproduce profile: test Recall@N of every row, fine-tuned rows averaged over the seeds (left),
+# and validation Recall@1 per epoch of the fine-tuned rows, mean ± standard deviation over the seeds (right).
+
+# %% [markdown]
 # ## What NetVLAD assigns where
 #
 # For three test queries: the image, the hard cluster of each of the 8×12 positions ($\arg\max_k \bar a_k$,
@@ -525,6 +534,11 @@ print(f"mean max assignment on these images: k-means init {a_init.amax(1).mean()
       f"trained {a_trained.amax(1).mean():.3f}; clusters used: init {a_init.argmax(1).unique().numel()}, "
       f"trained {a_trained.argmax(1).unique().numel()} of {K}")
 
+# %% [markdown]
+# **Figure 3.** Three test queries (left column), the cluster with the largest assignment at every position
+# of the feature map at the k-means initialisation and after training (middle columns, one colour per
+# cluster), and the largest assignment weight after training (right).
+
 # %%
 record("04_netvlad", {
     "profile": PROFILE, "epochs": RUN["epochs"], "seeds": list(RUN["seeds"]), "NetVLAD clusters": K,
@@ -545,37 +559,109 @@ record("04_netvlad", {
 # ratio 100 only *on average* (of its log). Write `weak_assignment_share(descs, cents, alpha, ratio=100.0)`:
 # the fraction of the L2-normalised descriptors `descs` $[N, D]$ (numpy; centroids `cents` $[K, D]$ are *not*
 # normalised) whose best weight is *less* than `ratio` times their second-best weight, as a Python float, in
-# numpy (no `vpr_nb`).
+# numpy (no `vpr_nb`). Grading runs only the notebook's import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-04-soft-share", "locked": false, "schema_version": 3, "solution": true}
 def weak_assignment_share(descs, cents, alpha, ratio=100.0):
     ### BEGIN SOLUTION
-    cos = descs @ (cents / np.linalg.norm(cents, axis=1, keepdims=True)).T
-    top2 = np.sort(cos, axis=1)[:, -2:]
-    return float(np.mean(alpha * (top2[:, 1] - top2[:, 0]) < np.log(ratio)))
+    unit = cents / np.linalg.norm(cents, axis=1)[:, None]
+    logits = alpha * np.einsum("nd,kd->nk", descs, unit)                  # log of the unnormalised weights
+    best_two = -np.partition(-logits, 1, axis=1)[:, :2]
+    return float(np.mean(best_two[:, 0] - best_two[:, 1] < np.log(ratio)))
     ### END SOLUTION
 
 
 # %% nbgrader={"grade": true, "grade_id": "ex-04-soft-share-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
 toy_d, toy_k = np.array([[1.0, 0.0], [0.6, 0.8]]), np.array([[2.0, 0.0], [0.0, 3.0]])   # cosine gaps 1.0 and 0.2
-got = weak_assignment_share(toy_d, toy_k, 10.0)
-assert isinstance(got, float), f"expected a Python float, got {type(got).__name__}"
-assert got == 0.5, (f"alpha = 10: weight ratios e^10 (>= 100) and e^2 (< 100), so expected a share of 0.5, got {got}")
+check("weak_assignment_share", [Case("alpha = 10: weight ratios e^10 (>= 100) and e^2 (< 100), so a share of 0.5",
+                                     (toy_d, toy_k, 10.0), expect=0.5, atol=1e-12)])
 ### BEGIN HIDDEN TESTS
-from vpr_nb.assignments import assert_own_code
-assert_own_code(weak_assignment_share)
-_rng = np.random.default_rng(1)
-_d = _rng.standard_normal((400, 4))
-_d /= np.linalg.norm(_d, axis=1, keepdims=True)
-_c = 3.0 * _rng.standard_normal((5, 4))
-_w = torch.softmax(torch.as_tensor(_d @ (_c / np.linalg.norm(_c, axis=1, keepdims=True)).T) * 25.0, dim=1).numpy()
-_top = np.sort(_w, axis=1)[:, -2:]
-for _ratio in (100.0, 10.0):
-    ref = float(np.mean(_top[:, 1] < _ratio * _top[:, 0]))
-    got = weak_assignment_share(_d, _c, 25.0, _ratio)
-    assert abs(got - ref) < 1e-9, f"400 random descriptors, 5 centroids, alpha 25, ratio {_ratio}: expected {ref:.4f}, got {got}"
-got = weak_assignment_share(_d, _c, 0.0)
-assert got == 1.0, f"alpha = 0 makes every assignment uniform: expected a share of 1.0, got {got}"
+import torch
+
+rng = np.random.default_rng(1)
+d_h = rng.standard_normal((400, 4))
+d_h /= np.linalg.norm(d_h, axis=1, keepdims=True)
+c_h = 3.0 * rng.standard_normal((5, 4))
+w_h = torch.softmax(torch.as_tensor(d_h @ (c_h / np.linalg.norm(c_h, axis=1, keepdims=True)).T) * 25.0, dim=1).numpy()
+top_h = np.sort(w_h, axis=1)[:, -2:]
+check("weak_assignment_share", [
+    Case(f"400 random descriptors, 5 centroids, alpha 25, ratio {r:g}", (d_h, c_h, 25.0, r),
+         expect=float(np.mean(top_h[:, 1] < r * top_h[:, 0])), atol=1e-9) for r in (100.0, 10.0)] + [
+    Case("alpha = 0 makes every assignment uniform, so a share of 1.0", (d_h, c_h, 0.0), expect=1.0, atol=1e-12)])
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Graded exercise: predict, then compute the descriptor of a switched-off image
+#
+# After the backbone's final ReLU many local features are exactly zero (the fraction was printed above).
+# Take an image whose $N$ local features are **all** exactly zero and the layer of this notebook
+# (`vladv2=False`: the soft assignment is a softmax of $\alpha \cos(x_i, c_k)$ of the L2-normalised feature, an
+# all-zero feature stays zero after L2 normalisation; then intra-normalisation of each cluster's residual sum
+# and a final L2 normalisation).
+#
+# **Predict first:** its NetVLAD descriptor is (a) `"zero"`, (b) `"depends on N"` (the number of local
+# features), or (c) `"fixed by the centroids"` (the same for every such image). Replace the `raise` below by
+# `ZERO_IMAGE = "..."` with one of those three strings.
+
+# %% tags=["grade-deps:ex-04-zero-predict", "grade-deps:ex-04-zero-descriptor"]
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
+
+# %% nbgrader={"grade": false, "grade_id": "ex-04-zero-predict", "locked": false, "schema_version": 3, "solution": true}
+### BEGIN SOLUTION
+ZERO_IMAGE = "fixed by the centroids"
+### END SOLUTION
+
+# %% nbgrader={"grade": true, "grade_id": "ex-04-zero-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check, one_of
+
+check("ZERO_IMAGE", [Case("your prediction", rubric=one_of("zero", "depends on N", "fixed by the centroids"))], call=False)
+### BEGIN HIDDEN TESTS
+check("ZERO_IMAGE", [Case("the NetVLAD descriptor of an image whose local features are all zero",
+                          expect="fixed by the centroids")], call=False)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# **Then compute it.** Write `zero_image_descriptor(cents)` for the centroids `cents` $[K, D]$ (numpy, not
+# normalised): the final NetVLAD descriptor of such an image as a numpy array $[K \cdot D]$, cluster by
+# cluster (entries $kD, \dots, kD + D - 1$ belong to cluster $k$), in numpy (no `vpr_nb`). What does your
+# result say about the mean pairwise cosine of the untrained descriptors after the ReLU?
+
+# %% nbgrader={"grade": false, "grade_id": "ex-04-zero-descriptor", "locked": false, "schema_version": 3, "solution": true}
+def zero_image_descriptor(cents):
+    ### BEGIN SOLUTION
+    k = cents.shape[0]
+    blocks = -cents / np.linalg.norm(cents, axis=1)[:, None]     # each residual sum is -N c_k / K
+    return blocks.reshape(-1) / np.sqrt(k)
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-04-zero-descriptor-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+check("zero_image_descriptor", [Case("two centroids (3, 4) and (0, -2)", (np.array([[3.0, 4.0], [0.0, -2.0]]),),
+                                     expect=np.array([-0.6, -0.8, 0.0, 1.0]) / np.sqrt(2), atol=1e-6)])
+### BEGIN HIDDEN TESTS
+import torch
+import torch.nn.functional as F
+
+
+def reference(cents, n=7):          # the layer itself, on an all-zero feature map of n positions
+    c = torch.as_tensor(cents, dtype=torch.float64)
+    x = F.normalize(torch.zeros(n, c.shape[1], dtype=torch.float64), dim=1)
+    a = torch.softmax(30.0 * x @ F.normalize(c, dim=1).T, dim=1)            # [n, K]
+    v = a.T @ x - a.sum(0)[:, None] * c                                       # residual sums [K, D]
+    return F.normalize(F.normalize(v, dim=1).reshape(-1), dim=0).numpy()
+
+
+rng = np.random.default_rng(4)
+check("zero_image_descriptor", [Case(f"{k} random centroids of dimension {d}", (c,), expect=reference(c), atol=1e-6)
+                                for k, d, c in ((k, d, rng.normal(0.0, 2.0, (k, d))) for k, d in ((4, 3), (16, 8)))])
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -583,16 +669,34 @@ assert got == 1.0, f"alpha = 0 makes every assignment uniform: expected a share 
 #
 # 1. **Hard vs soft.** Replace `soft_assign` by `hard_assign` inside `netvlad_by_hand`: is the result
 #    still differentiable with respect to the centroids? With respect to the $1\times1$ conv weights?
+#    <details><summary>Hint</summary>Run <code>.backward()</code> on the sum of the output with
+#    <code>requires_grad_()</code> centroids and conv weights, and look at which <code>.grad</code> are zero or
+#    missing: an <code>argmax</code> has no gradient, a residual $x_i - c_k$ does.</details>
 # 2. **No intra-normalisation.** Remove the row-wise `F.normalize` in `vlad_by_hand`, rebuild a layer
 #    without it (subclass `NetVLAD`) and retrain. Which clusters dominate the descriptor now?
+#    <details><summary>Hint</summary>Without it a cluster's block has the norm of its residual sum, which
+#    grows with how many features it receives: print the norm of each cluster's block for a few test images
+#    before and after training.</details>
 # 3. **The 100:1 rule.** Initialise with $\alpha$ ten times smaller and ten times larger than Eq. (6).
 #    How do the untrained test recall and the mean max assignment change?
+#    <details><summary>Hint</summary>After <code>init_netvlad</code> (or <code>kmeans_init</code>), scale the
+#    layer's assignment weights: they are $\alpha \hat c_k$ in <code>model.aggregator.conv</code>. The graded
+#    exercise's function tells you how many descriptors each α leaves soft.</details>
 # 4. **After the ReLU.** Train `build_model(course_backbone(trainable_blocks=1), "netvlad", num_clusters=K)`
 #    (the ReLU kept) with `run`'s recipe. How much of the gap of the untrained table does training close?
+#    <details><summary>Hint</summary>Train it with the same <code>TripletSource</code> and
+#    <code>TrainConfig</code> as the experiment rows (read them in <code>run</code>), on the same seeds, and put
+#    its test R@1 beside the "after the ReLU" and "before the ReLU" rows of the untrained table.</details>
 # 5. **vladv2.** Train with `vladv2=True` and `normalize_input=False`; Eq. (3) now holds exactly. Does it
 #    train better here?
+#    <details><summary>Hint</summary>With <code>vladv2=True</code> the conv has a bias, $-\alpha \lVert c_k
+#    \rVert^2$; check with the toy vocabulary that the assignment equals a softmax of $-\alpha \lVert x - c_k
+#    \rVert^2$ before you train.</details>
 # 6. **Budget.** NetVLAD's descriptor is 16× larger than GeM's. Reduce it with PCA (faiss `PCAMatrix`) to
 #    128-D after training and compare the Recall table at equal descriptor size.
+#    <details><summary>Hint</summary>Fit the PCA on the <em>training</em> database descriptors only
+#    (<code>faiss.PCAMatrix(2048, 128)</code>, <code>.train</code>, <code>.apply</code>), L2-normalise after it,
+#    and evaluate with <code>evaluate_descriptors</code>.</details>
 #
 # ## Takeaways
 #
@@ -606,8 +710,8 @@ assert got == 1.0, f"alpha = 0 makes every assignment uniform: expected a share 
 # * Where the features are read matters. After the backbone's last ReLU most local features are exactly zero:
 #   each adds the same $-c_k/K$ to every cluster of every image, the untrained NetVLAD's descriptors become
 #   nearly identical (mean cosine close to 1) and recall drops far below the same layer on the features before
-#   the ReLU (untrained table). Exactly-zero features also have no direction for k-means; `init_netvlad` now
-#   skips them (it failed on them before). NetVLAD's public code reads VGG16's conv5_3 before its ReLU too.
+#   the ReLU (untrained table). Exactly-zero features also have no direction for k-means; `init_netvlad`
+#   skips them. NetVLAD's public code reads VGG16's conv5_3 before its ReLU too.
 # * Fine-tuned with the same triplets, optimiser, epochs and seeds, **GeM beats NetVLAD on this world** (the
 #   committed table and its paired verdict). GeM gains the most from fine-tuning; NetVLAD ends only a little
 #   above its k-means initialisation, its best validation epoch comes early, and training the backbone's last
@@ -617,6 +721,22 @@ assert got == 1.0, f"alpha = 0 makes every assignment uniform: expected a share 
 #   ImageNet VGG16 (GeM came two years later), on Pittsburgh, with 64 clusters.
 # * The live CI numbers above come from one epoch on one seed: a smoke test. Compare methods with the committed
 #   reproduce-profile table and its verdicts.
+
+# %% [markdown]
+# ## Self-check
+#
+# 1. What do BoW, VLAD and NetVLAD each keep of the local descriptors assigned to a cluster?
+#    <details><summary>Answer</summary>BoW keeps how many there are (a count), VLAD the sum of their residuals
+#    to the centroid (hard assignment), NetVLAD the same residual sum with soft, learnable assignment weights
+#    (Eqs. 3–4), followed by intra-normalisation and a final L2 normalisation.</details>
+# 2. What does Eq. (6) choose α for, and does it make every descriptor's assignment sharp?
+#    <details><summary>Answer</summary>It makes the best/second-best soft weight ratio 100 on average (of its
+#    log) over the sampled descriptors; descriptors whose two nearest centroids are almost equally close stay
+#    soft.</details>
+# 3. Why does NetVLAD do worse on the course backbone's features after its final ReLU than before it?
+#    <details><summary>Answer</summary>Most features after the ReLU are exactly zero; each adds the same
+#    $-c_k/K$ to every cluster of every image, so the untrained descriptors become nearly identical (mean cosine
+#    close to 1) and retrieval suffers.</details>
 
 # %% [markdown]
 # ## References

@@ -200,6 +200,11 @@ plt.show()
 
 
 # %% [markdown]
+# **Figure 1.** The toy score matrix (4 clusters, 12 features): a softmax over clusters as in NetVLAD
+# (left), the Sinkhorn plan with a dustbin (last row) after 1 and 3 iterations (middle), and the largest row
+# marginal error against the number of iterations (right, log scale).
+
+# %% [markdown]
 # The softmax plan (left) lets one cluster take most features and others none; the transport plan
 # spreads one unit of mass to each cluster and sends the leftover to the dustbin (last row).
 #
@@ -336,7 +341,7 @@ sample = sample[torch.randperm(len(sample), generator=torch.Generator().manual_s
 print(f"mean cosine between two local features of the backbone: {mean_pairwise_cosine(sample.numpy()):.3f}\n")
 
 vpr_nb.seed_everything(0)
-from_scratch = build_model("small_cnn", "salad", **SALAD_SIZE)       # random-init SmallCNN: the old notebook's setting
+from_scratch = build_model("small_cnn", "salad", **SALAD_SIZE)       # random-init SmallCNN: no pretraining at all
 untrained = {"SALAD, paper init": plain, "SALAD (standardised inputs)": folded,
              "SALAD, paper init, from-scratch SmallCNN": from_scratch}
 init_stats = {name: {**plan_stats(m), "R@1": model_row(m)["R@1"]} for name, m in untrained.items()}
@@ -359,10 +364,9 @@ for name, r in init_stats.items():
 # step in the paper: they come out of a LayerNorm and are far more diverse. The row "SALAD, paper init"
 # trains the published initialisation with the same recipe, to measure what the step is worth.
 #
-# The previous version of this notebook trained SALAD on a **randomly initialised** SmallCNN and found its
-# cluster vectors identical after training (`git show c24113c:notebooks/05_salad.ipynb`: cluster cosine
-# 1.000, test R@1 0.160 against GeM's 0.434, CI profile); its ablation blamed the projection head. The last
-# row above is that setting before training: the same symmetric start.
+# The last row of the table above is the published initialisation on a **randomly initialised** SmallCNN,
+# without any pretraining: its cluster vectors are just as identical (cluster cosine 1.000), the same
+# symmetric start.
 #
 # ## Experiment: SALAD vs NetVLAD vs GeM at equal budget
 #
@@ -531,6 +535,10 @@ for m in ("GeM", "NetVLAD", "SALAD"):
           f"val R@1 over the last 3 epochs {v[:, -4].mean():.3f} -> {v[:, -1].mean():.3f}")
 
 # %% [markdown]
+# **Figure 2.** Validation Recall@1 per epoch of every fine-tuned row of the reproduce profile, mean ±
+# standard deviation over the seeds (dashed: the Multi-Similarity recipe).
+
+# %% [markdown]
 # ## Is the trained plan non-uniform?
 #
 # The same plan statistics as above, before and after training, on the 64 test queries: for the live run
@@ -595,6 +603,11 @@ print(f"largest entry of each cluster row of the plan, mean: {plans[:, :-1].amax
       f"(uniform plan 1/n = {1 / (h * w):.3f}; one feature per cluster = 1); clusters that are some position's "
       f"main cluster: {plans[:, :-1].argmax(1).unique().numel()} of {m}")
 
+# %% [markdown]
+# **Figure 3.** The trained SALAD (seed 0) on three test queries (left column): the share of each feature's
+# mass that goes to the dustbin, the cluster that receives most of it, and the entropy of its distribution
+# over the clusters divided by $\log m$ (0: one cluster, 1: uniform).
+
 # %%
 record("05_salad", {
     "profile": PROFILE, "epochs": RUN["epochs"], "seeds": list(RUN["seeds"]),
@@ -615,37 +628,133 @@ record("05_salad", {
 # **plan-weighted mean** of the features, which keeps each cluster's scale. Write `cluster_means(f, p)`: for
 # projected features `f` $[l, n]$ and a plan `p` $[m, n]$ (torch tensors, dustbin row already removed), the
 # $[l, m]$ matrix whose column $k$ is $\sum_i p_{ki} f_{\cdot i} / \sum_i p_{ki}$, in plain torch (no `vpr_nb`).
+# Grading runs only the notebook's import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-05-cluster-means", "locked": false, "schema_version": 3, "solution": true}
 def cluster_means(f, p):
     ### BEGIN SOLUTION
-    return (f @ p.T) / p.sum(dim=1)
+    weights = p / p.sum(dim=1, keepdim=True)          # each cluster's row sums to 1
+    return torch.einsum("ln,mn->lm", f, weights)
     ### END SOLUTION
 
 
 # %% nbgrader={"grade": true, "grade_id": "ex-05-cluster-means-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-_f = torch.arange(12.0).reshape(3, 4)                          # l = 3 channels, n = 4 features
-_p = torch.tensor([[0.0, 2.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.5]])   # cluster 0: feature 1; cluster 1: mean of 0 and 3
-_want = torch.stack([_f[:, 1], (_f[:, 0] + _f[:, 3]) / 2], dim=1)
-_v = cluster_means(_f, _p)
-assert tuple(_v.shape) == (3, 2), f"expected shape (l, m) = (3, 2), got {tuple(_v.shape)}"
-assert torch.allclose(_v, _want), f"toy plan: expected columns {_want.T.tolist()}, got {_v.T.tolist()}"
+import torch
+
+from vpr_nb.assignments import Case, check
+
+f_toy = torch.arange(12.0).reshape(3, 4)                          # l = 3 channels, n = 4 features
+p_toy = torch.tensor([[0.0, 2.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.5]])   # cluster 0: feature 1; cluster 1: mean of 0 and 3
+check("cluster_means", [Case("toy plan: cluster 0 takes feature 1, cluster 1 the mean of features 0 and 3",
+                             (f_toy, p_toy), expect=torch.stack([f_toy[:, 1], (f_toy[:, 0] + f_toy[:, 3]) / 2], dim=1),
+                             atol=1e-6)])
 ### BEGIN HIDDEN TESTS
-from vpr_nb.assignments import assert_own_code
-assert_own_code(cluster_means)
-_gen = torch.Generator().manual_seed(3)
-_f, _s = torch.randn(6, 20, generator=_gen), torch.randn(4, 20, generator=_gen)
-_p = sinkhorn(_s[None], 0.5, 3)[0].exp()[:-1]
-_ref = torch.stack([(_p[k][None] * _f).sum(1) / _p[k].sum() for k in range(4)], dim=1)
-_v = cluster_means(_f, _p)
-assert torch.allclose(_v, _ref, atol=1e-5), f"a 3-iteration Sinkhorn plan: expected {_ref[:, 0].tolist()} in column 0, got {_v[:, 0].tolist()}"
-assert torch.allclose(cluster_means(2 * _f, _p), 2 * _ref, atol=1e-5), "scaling the features by 2 must scale the means by 2 (no normalisation)"
-assert torch.allclose(cluster_means(_f, 3 * _p), _ref, atol=1e-5), "scaling the plan by 3 must not change the means"
-_t = torch.randn(5, generator=_gen)
-_desc = F.normalize(torch.cat([F.normalize(_t, dim=0), F.normalize(_v, dim=0).flatten()]), dim=0)
-_lib = salad_aggregate(_f[None], _s[None], _t[None], 0.5)[0]
-assert torch.allclose(_desc, _lib, atol=1e-5), (f"normalising each column of the means must give SALAD's descriptor, Eqs. (4)-(5): "
-                                               f"max difference {(_desc - _lib).abs().max().item():.2e}")
+import torch.nn.functional as F
+
+from vpr_nb.aggregation import salad_aggregate, sinkhorn  # noqa: F811 (a test cell imports what it needs)
+
+gen = torch.Generator().manual_seed(3)
+f_h, s_h = torch.randn(6, 20, generator=gen), torch.randn(4, 20, generator=gen)
+p_h = sinkhorn(s_h[None], 0.5, 3)[0].exp()[:-1]
+ref = torch.stack([(p_h[k][None] * f_h).sum(1) / p_h[k].sum() for k in range(4)], dim=1)
+t_h = torch.randn(5, generator=gen)
+salad = salad_aggregate(f_h[None], s_h[None], t_h[None], 0.5)[0]
+check("cluster_means", [
+    Case("a 3-iteration Sinkhorn plan (6 channels, 20 features, 4 clusters)", (f_h, p_h), expect=ref, atol=1e-5),
+    Case("features scaled by 2: the means scale by 2 (no normalisation)", (2 * f_h, p_h), expect=2 * ref, atol=1e-5),
+    Case("the plan scaled by 3: the means do not change", (f_h, 3 * p_h), expect=ref, atol=1e-5)])
+
+
+def salad_from_means(v):            # normalising each column of the means must give SALAD's descriptor, Eqs. (4)-(5)
+    import numpy as np
+    cols = v.array / np.linalg.norm(v.array, axis=0, keepdims=True)
+    t = F.normalize(t_h, dim=0).numpy()
+    desc = np.concatenate([t, cols.reshape(-1)])
+    desc = desc / np.linalg.norm(desc)
+    gap = float(np.abs(desc - salad.numpy()).max())
+    return None if gap < 1e-5 else f"normalising each column of your means gives a descriptor {gap:.2e} away from SALAD's"
+
+
+check("cluster_means", [Case("SALAD's descriptor from the means, Eqs. (4)-(5)", (f_h, p_h), rubric=salad_from_means)])
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Graded exercise: predict, then measure what the dustbin takes
+#
+# With the marginals of Eq. (3) every feature gives mass 1, every cluster receives mass 1 and the dustbin
+# the rest. The dustbin score $z$ is learned.
+#
+# **Predict first:** once Sinkhorn has converged, as $z$ grows, does the total mass the dustbin takes
+# `"grow"`, `"shrink"`, or `"stay n - m"`? Replace the `raise` below by `DUSTBIN_AS_Z_GROWS = "..."` with one of
+# those three strings.
+
+# %% tags=["grade-deps:ex-05-dustbin-predict", "grade-deps:ex-05-dustbin-mass"]
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
+
+# %% nbgrader={"grade": false, "grade_id": "ex-05-dustbin-predict", "locked": false, "schema_version": 3, "solution": true}
+### BEGIN SOLUTION
+DUSTBIN_AS_Z_GROWS = "stay n - m"
+### END SOLUTION
+
+# %% nbgrader={"grade": true, "grade_id": "ex-05-dustbin-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check, one_of
+
+check("DUSTBIN_AS_Z_GROWS", [Case("your prediction", rubric=one_of("grow", "shrink", "stay n - m"))], call=False)
+### BEGIN HIDDEN TESTS
+check("DUSTBIN_AS_Z_GROWS", [Case("the dustbin's total mass at convergence as z grows", expect="stay n - m")],
+      call=False)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# **Then measure.** Write `dustbin_mass(scores, z, iters)` for a score matrix `scores` (numpy, $[m, n]$ with
+# $n > m$), a dustbin score `z` and a number of iterations: run `iters` iterations of Eq. (2) (a $u$ update,
+# then a $v$ update, from $u = v = 0$) on $\bar S = [S; z \mathbf 1^\top]$ with the marginals of Eq. (3), and
+# return the pair (mass received by the $m$ clusters, mass received by the dustbin) of the plan, as Python
+# floats, in numpy (no `vpr_nb`). Then try 1, 3 and 100 iterations at $z = -3$ and $z = 3$: does your
+# prediction need convergence, and how much does $z$ change the plan?
+
+# %% nbgrader={"grade": false, "grade_id": "ex-05-dustbin-mass", "locked": false, "schema_version": 3, "solution": true}
+def dustbin_mass(scores, z, iters):
+    ### BEGIN SOLUTION
+    clusters, features = np.shape(scores)
+    s_bar = np.vstack([scores, np.full((1, features), float(z))])
+    log_a = np.log(np.concatenate([np.ones(clusters), [features - clusters]]))
+    log_u, log_v = np.zeros(clusters + 1), np.zeros(features)
+    for _step in range(iters):
+        log_u = log_a - np.logaddexp.reduce(s_bar + log_v[None, :], axis=1)
+        log_v = -np.logaddexp.reduce(s_bar + log_u[:, None], axis=0)      # log b = 0
+    plan = np.exp(s_bar + log_u[:, None] + log_v[None, :])
+    return float(plan[:clusters].sum()), float(plan[clusters].sum())
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-05-dustbin-mass-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+check("dustbin_mass", [Case("one cluster, three features, all scores 0, z = 0, one iteration",
+                            (np.zeros((1, 3)), 0.0, 1), expect=(1.0, 2.0), atol=1e-9)])
+### BEGIN HIDDEN TESTS
+rng = np.random.default_rng(5)
+s_h = 2.0 * rng.standard_normal((4, 12))
+
+
+def reference(scores, z, iters):    # the same iterations in the exponential domain
+    m, n = scores.shape
+    k = np.exp(np.vstack([scores, np.full((1, n), z)]))
+    a, b = np.r_[np.ones(m), n - m], np.ones(n)
+    u, v = np.ones(m + 1), np.ones(n)
+    for _ in range(iters):
+        u = a / (k @ v)
+        v = b / (k.T @ u)
+    plan = u[:, None] * k * v[None, :]
+    return (float(plan[:m].sum()), float(plan[m].sum()))
+
+
+check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration(s)", (s_h, z, it),
+                            expect=reference(s_h, z, it), atol=1e-6, rtol=1e-6)
+                       for z, it in ((0.5, 1), (-3.0, 3), (3.0, 3), (3.0, 100), (-3.0, 100))])
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -653,17 +762,35 @@ assert torch.allclose(_desc, _lib, atol=1e-5), (f"normalising each column of the
 #
 # 1. **Iterations.** Train SALAD with 1 and with 10 Sinkhorn iterations (subclass `SALAD` and call
 #    `vpr_nb.aggregation.salad_aggregate(..., num_iters=k)`). Does the exact marginal matter for Recall?
+#    <details><summary>Hint</summary>Look first at the row-error curve above: how far from the marginals is
+#    the plan after 1 and after 10 iterations? Then train both on the same seeds as the SALAD row and compare
+#    them with <code>results.paired_verdict</code>, not one run each.</details>
 # 2. **No dustbin.** Set the dustbin score to $-\infty$ in `sinkhorn_by_hand` (and $a = [n/m, \dots]$ so the
 #    marginals stay feasible). What happens to the features of the sky and the road?
+#    <details><summary>Hint</summary>With the dustbin row at $-\infty$ it receives nothing, so every feature's
+#    unit of mass goes to some cluster. Plot the plan of a test image as the figure "what the trained SALAD
+#    keeps" does and look at where the positions that the dustbin took before now go.</details>
 # 3. **Temperature.** Sinkhorn here has regularisation 1 (Eq. 1). Multiply the toy scores by 10 and by 0.1:
 #    how does the plan change, and how many iterations does the row error need to reach $10^{-4}$?
+#    <details><summary>Hint</summary>Reuse the <code>row_err</code> computation with
+#    <code>10 * toy_scores</code> and <code>0.1 * toy_scores</code>; larger scores mean a weaker entropy term
+#    (a plan closer to a hard assignment), and convergence slows down.</details>
 # 4. **Token or clusters?** Retrain SALAD with `token_dim` tiny (e.g. 4) and with `cluster_dim` tiny: which
 #    part of the descriptor carries the retrieval performance here?
+#    <details><summary>Hint</summary><code>SALAD_SIZE</code> holds the layer's sizes: build the model with
+#    <code>{**SALAD_SIZE, "token_dim": 4}</code> (then <code>"cluster_dim"</code>), fold the standardisation
+#    as for the SALAD row, and train with the same recipe and seeds.</details>
 # 5. **Equal size.** Compare SALAD and NetVLAD at equal descriptor size (SALAD with `cluster_dim=128` is
 #    16 × 128 + 64-D, NetVLAD with $K = 16$ is 2048-D).
+#    <details><summary>Hint</summary>The descriptor has <code>token_dim + clusters * cluster_dim</code>
+#    entries; pick the sizes so that both are (nearly) 2048-D, and remember that a larger descriptor also
+#    makes the triplet mining slower.</details>
 # 6. **Centre or scale?** `standardise_inputs` both centres and scales the features. Fold only the centring
 #    (`sd = 1`), then only the scaling (`mu = 0`), and compare the untrained plan statistics and one epoch of
 #    training. Which of the two removes the collapse?
+#    <details><summary>Hint</summary>Copy <code>standardise_inputs</code> and replace <code>sd</code> by ones
+#    (then <code>mu</code> by zeros) before the fold; <code>plan_stats(model)</code> prints the cluster cosine
+#    that tells a collapsed start (1.000) from a working one.</details>
 #
 # ## Takeaways
 #
@@ -673,8 +800,8 @@ assert torch.allclose(_desc, _lib, atol=1e-5), (f"normalising each column of the
 # * SALAD = MLP scores + optimal-transport assignment + MLP features, summed without centroid residuals,
 #   intra-normalised, concatenated with a global token (Eqs. 4-5); `vpr_nb.aggregation.SALAD` computes Eq. (4)
 #   as one batched product and loads the published DINOv2-SALAD aggregator weights by name.
-# * **With the published initialisation SALAD collapses on the course backbone**, as it did on the old
-#   from-scratch CNN: the local features share a large common component, every projected feature points the
+# * **With the published initialisation SALAD collapses on the course backbone**, as it does on a
+#   from-scratch CNN (the untrained table): the local features share a large common component, every projected feature points the
 #   same way, the cluster vectors are identical (cosine 1) before *and* after training, and every image gets
 #   nearly the same descriptor ("SALAD, paper init" rows). Without a residual to a centroid nothing removes the
 #   common part; NetVLAD's k-means initialisation does it for NetVLAD.
@@ -693,6 +820,22 @@ assert torch.allclose(_desc, _lib, atol=1e-5), (f"normalising each column of the
 #   (verdicts). Random places are mostly easy negatives here, and "places" have to be built from geotags.
 # * The live CI numbers come from one epoch on one seed: a smoke test. Compare methods with the committed
 #   tables and their verdicts.
+
+# %% [markdown]
+# ## Self-check
+#
+# 1. After one Sinkhorn iteration, which marginals of Eq. (3) hold exactly, and which only approximately?
+#    <details><summary>Answer</summary>The column sums (what each feature gives) hold exactly after every $v$
+#    update; the row sums (what each cluster and the dustbin receive) converge geometrically, and after SALAD's
+#    3 iterations they are close but not exact.</details>
+# 2. Why does the dustbin need more features than clusters, $n > m$?
+#    <details><summary>Answer</summary>Each cluster must receive mass 1 and each feature gives mass 1, so the
+#    dustbin receives $n - m$: with $n \le m$ that is zero or negative and the marginals are infeasible (the
+#    library refuses a 64-feature map for 64 clusters).</details>
+# 3. Why does SALAD with the published initialisation collapse on the course backbone, and what removes it?
+#    <details><summary>Answer</summary>The local features share a large common component, so every projected
+#    feature points the same way and the cluster vectors are identical; there is no residual to a centroid to
+#    remove it. Standardising the features the first layers see (folded into their weights) removes it.</details>
 
 # %% [markdown]
 # ## References

@@ -377,6 +377,12 @@ plt.show()
 
 
 # %% [markdown]
+# **Figure 1.** GDS on the route test split (live run): descriptor distance against geographic distance for
+# every model, mean ± 1 standard deviation per bin with the fit of Eq. (2) (left); the mis-ordering
+# probability $p(0, d_2)$ of Eq. (3) (middle); and $p(d_1, d_2)$ for every pair of distances of the
+# triplet-fine-tuned model (right; red: the farther image usually wins).
+
+# %% [markdown]
 # **Reading the numbers** (the committed reproduce-profile table, its verdict lines and the printed
 # curves; the live CI-profile table shows the same ordering on one seed with a shorter budget).
 #
@@ -420,6 +426,11 @@ print(f"{len(close)} of {len(geo_top1)} queries: top-1 of the fine-tuned (triple
 demo = int(close[0]) if len(close) else 0
 show_query(demo)
 
+# %% [markdown]
+# **Figure 2.** A query whose top-1 under the triplet-fine-tuned model lies within 20 m but is not a
+# positive: the query, then its top-5 database images with their true distances (the table above gives
+# their descriptor distances).
+
 # %%
 # NBVAL_IGNORE_OUTPUT
 # (an interactive widget: its output depends on the front end)
@@ -429,6 +440,13 @@ try:
                      k=widgets.IntSlider(5, 2, 10, 1), model=order)
 except ImportError:
     print("install ipywidgets for the interactive version; show_query(q) works without it")
+print(f"The default state, drawn once more without the widget (query 0, k = 5, {order[0]}), for readers without a kernel:")
+show_query(0, k=5, model=order[0])
+
+# %% [markdown]
+# **Figure 3.** The query explorer: sliders for the query and k and a menu for the model redraw a query's
+# top-k in JupyterLab; the table and images printed under it are its default state (query 0, k = 5, raw
+# pixels), stored for readers without a kernel.
 
 # %%
 record("06_gds", {
@@ -446,34 +464,101 @@ record("06_gds", {
 # the fraction of sample pairs $(x_1, x_2)$, $x_1$ from the nearer bin and $x_2$ from the farther one, with
 # $x_2 < x_1$, ties counting one half. Write `misorder_empirical(x1, x2)` for two 1-D numpy arrays of
 # descriptor distances, returning a Python float, in numpy (no `vpr_nb`; the hidden tests use a few
-# thousand samples per bin, so an all-pairs matrix is fine).
+# thousand samples per bin, so an all-pairs matrix is fine). Grading runs only the notebook's import cells
+# and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-06-misorder-empirical", "locked": false, "schema_version": 3, "solution": true}
 def misorder_empirical(x1, x2):
     ### BEGIN SOLUTION
-    x1, x2 = np.asarray(x1, float)[:, None], np.asarray(x2, float)[None, :]
-    return float(np.mean((x2 < x1) + 0.5 * (x2 == x1)))
+    near, far = np.sort(np.asarray(x1, float)), np.asarray(x2, float)
+    below = np.searchsorted(near, far, side="right")          # near samples >= each far one: len - below
+    ties = below - np.searchsorted(near, far, side="left")
+    return float((np.sum(len(near) - below) + 0.5 * np.sum(ties)) / (len(near) * len(far)))
     ### END SOLUTION
 
 
 # %% nbgrader={"grade": true, "grade_id": "ex-06-misorder-empirical-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
-got = misorder_empirical(np.array([1.0, 3.0]), np.array([2.0, 3.0]))
-assert isinstance(got, float), f"expected a Python float, got {type(got).__name__}"
-assert abs(got - 0.375) < 1e-12, (f"x1 = [1, 3], x2 = [2, 3]: pairs (1,2) no, (1,3) no, (3,2) yes, (3,3) a tie: "
-                                  f"expected (0 + 0 + 1 + 0.5) / 4 = 0.375, got {got}")
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+check("misorder_empirical", [Case("x1 = [1, 3], x2 = [2, 3]: pairs (1,2) no, (1,3) no, (3,2) yes, (3,3) a tie, "
+                                  "so (0 + 0 + 1 + 0.5) / 4", (np.array([1.0, 3.0]), np.array([2.0, 3.0])),
+                                  expect=0.375, atol=1e-12)])
 ### BEGIN HIDDEN TESTS
-from vpr_nb.assignments import assert_own_code
-assert_own_code(misorder_empirical)
-_rng = np.random.default_rng(0)
-_a, _b = _rng.normal(0.5, 0.1, 2000), _rng.normal(0.6, 0.1, 1500)
-_ref = float(np.mean(_b[None, :] < _a[:, None]))
-_got = misorder_empirical(_a, _b)
-assert abs(_got - _ref) < 1e-12, f"2000 x 1500 Gaussian samples: expected {_ref:.6f}, got {_got}"
-_gauss = float(ndtr((0.5 - 0.6) / np.sqrt(0.02)))
-assert abs(_got - _gauss) < 0.02, f"close to Eq. (3) for Gaussian bins: expected about {_gauss:.3f}, got {_got:.3f}"
-_got = misorder_empirical(np.round(_a, 1), np.round(_b, 1))
-_ref = float(np.mean((np.round(_b, 1)[None] < np.round(_a, 1)[:, None]) + 0.5 * (np.round(_b, 1)[None] == np.round(_a, 1)[:, None])))
-assert abs(_got - _ref) < 1e-12, f"samples rounded to 0.1 (many ties, each counting 1/2): expected {_ref:.6f}, got {_got}"
+from scipy.special import ndtr  # noqa: F811 (a test cell imports what it needs)
+
+rng = np.random.default_rng(0)
+a_h, b_h = rng.normal(0.5, 0.1, 2000), rng.normal(0.6, 0.1, 1500)
+ar, br = np.round(a_h, 1), np.round(b_h, 1)
+gauss = float(ndtr((0.5 - 0.6) / np.sqrt(0.02)))
+check("misorder_empirical", [
+    Case("2000 x 1500 Gaussian samples", (a_h, b_h), expect=float(np.mean(b_h[None, :] < a_h[:, None])), atol=1e-12),
+    Case(f"Gaussian bins: close to Eq. (3), about {gauss:.3f}", (a_h, b_h), expect=gauss, atol=0.02),
+    Case("samples rounded to 0.1 (many ties, each counting 1/2)", (ar, br),
+         expect=float(np.mean((br[None] < ar[:, None]) + 0.5 * (br[None] == ar[:, None]))), atol=1e-12)])
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Graded exercise: predict, then compute the Recall@1 cap of a profile
+#
+# Eq. (5) caps Recall@1 on the route by the mis-ordering probability between the 0 m bin and the 10 m bin.
+#
+# **Predict first:** descriptor B is descriptor A with every descriptor distance multiplied by 2 (so B's
+# slope of Eq. (2) is twice A's). Is B's cap of Eq. (5) `"higher"`, `"lower"` or `"the same"`? Replace the
+# `raise` below by `CAP_OF_B = "..."` with one of those three strings.
+
+# %% tags=["grade-deps:ex-06-cap-predict", "grade-deps:ex-06-r1-cap"]
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
+
+# %% nbgrader={"grade": false, "grade_id": "ex-06-cap-predict", "locked": false, "schema_version": 3, "solution": true}
+### BEGIN SOLUTION
+CAP_OF_B = "the same"
+### END SOLUTION
+
+# %% nbgrader={"grade": true, "grade_id": "ex-06-cap-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check, one_of
+
+check("CAP_OF_B", [Case("your prediction", rubric=one_of("higher", "lower", "the same"))], call=False)
+### BEGIN HIDDEN TESTS
+check("CAP_OF_B", [Case("the cap of Eq. (5) when every descriptor distance doubles", expect="the same")], call=False)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# **Then compute it.** Write `r1_cap(mu, sd, b_pos, b_neg)` for a profile's bin means `mu` and standard
+# deviations `sd` (numpy arrays, Eq. (1)) and the bin indices of the positive and of the nearest negatives
+# (on the route: the bins at 0 m and 10 m): the cap $(1 - p)^2$ of Eq. (5) with $p$ from Eq. (3), as a Python
+# float, in numpy and `math` (no `vpr_nb`, no scipy; $\Phi(x) = \frac12\big(1 + \operatorname{erf}(x / \sqrt 2)\big)$).
+# Then compute it in a new cell for the profiles above, e.g. `r1_cap(prof_f.mean, prof_f.std, 0, 2)`, and set
+# it beside the measured R@1 of the tables.
+
+# %% nbgrader={"grade": false, "grade_id": "ex-06-r1-cap", "locked": false, "schema_version": 3, "solution": true}
+def r1_cap(mu, sd, b_pos, b_neg):
+    ### BEGIN SOLUTION
+    import math
+    z = (mu[b_pos] - mu[b_neg]) / math.sqrt(sd[b_pos] ** 2 + sd[b_neg] ** 2)
+    p_far_first = 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
+    return float((1.0 - p_far_first) ** 2)
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-06-r1-cap-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+check("r1_cap", [Case("equal means at 0 m and 10 m: p = 1/2, so a cap of 1/4",
+                      (np.array([0.5, 0.6, 0.5]), np.array([0.1, 0.1, 0.1]), 0, 2), expect=0.25, atol=1e-9)])
+### BEGIN HIDDEN TESTS
+from scipy.special import ndtr  # noqa: F811 (a test cell imports what it needs)
+
+mu_h = np.array([0.40, 0.52, 0.61, 0.66, 0.70])
+sd_h = np.array([0.08, 0.09, 0.10, 0.10, 0.11])
+check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, b2),
+                      expect=float((1 - ndtr((mu_h[b1] - mu_h[b2]) / np.hypot(sd_h[b1], sd_h[b2]))) ** 2), atol=1e-6)
+                 for b1, b2 in ((0, 2), (0, 1), (1, 4))] + [
+                 Case("every distance doubled: the same cap", (2 * mu_h, 2 * sd_h, 0, 2),
+                      expect=float((1 - ndtr((mu_h[0] - mu_h[2]) / np.hypot(sd_h[0], sd_h[2]))) ** 2), atol=1e-6)])
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -481,19 +566,38 @@ assert abs(_got - _ref) < 1e-12, f"samples rounded to 0.1 (many ties, each count
 #
 # 1. **Bin width.** Recompute a profile with `bin_width=2.5`. Why do every other bin empty out on the route,
 #    and why does the notebook use $0.96 \times$ the frame spacing?
+#    <details><summary>Hint</summary>On the route a query and a database image are always a whole number of
+#    frames apart, so the geographic distances are multiples of the frame spacing: list
+#    <code>np.unique(np.round(geo, 3))</code> for a few pairs and ask which bins they can fall in, and what a
+#    bin edge exactly on a multiple does with rounding errors.</details>
 # 2. **Gaussian vs empirical.** Compare `misordering_matrix(prof_t, grid, "gaussian")` with the `"empirical"`
 #    version. Where does the Gaussian approximation of Eq. (3) fail, and why (hint: skewness near 0 m)?
+#    <details><summary>Hint</summary>Plot the histogram of the descriptor distances in the 0 m bin next to the
+#    10 m bin (<code>keep_pairs=True</code> keeps them): distances cannot go below 0, so a bin with a small mean
+#    is skewed, and a Gaussian with the same mean and spread puts mass where there is none.</details>
 # 3. **Check Eq. (5).** For the fine-tuned model, count per query how many of the two 10 m negatives beat the
 #    0 m positive, and compare the fraction of queries with none to $(1 - p(0, 10))^2$.
+#    <details><summary>Hint</summary>For query $q$ at frame $i$ the 0 m image is database frame $i$ and the
+#    10 m negatives are frames $i \pm 2$ (when they exist): compare their descriptor distances to the query with
+#    the 0 m one. Your <code>r1_cap</code> gives the prediction to compare with.</details>
 # 4. **City, heading-consistent pairs.** Profile the frozen backbone on the `city` world (`pos_radius` 25 m,
 #    `bin_width=5`). Keep only pairs whose cameras face the same way: bucket every heading into one of 4
 #    directions (`heading // 90`, as `vpr_nb.pretrain.place_labels` does) and add `1e6 * bucket` to the
 #    easting of the UTM passed to `gds_profile`, so that pairs of different buckets are never within
 #    `max_distance`. Compare with the profile over all pairs: what does mixing headings do to the bin at 0 m?
+#    <details><summary>Hint</summary><code>make_dataset("city", seed=0)</code>, then shift
+#    <code>utm[:, 0] + 1e6 * (heading // 90)</code> for both the database and the queries; at 0 m the mixed
+#    profile averages same-view pairs with pairs that share no content.</details>
 # 5. **Scale.** Multiply the raw-pixel descriptors by 10 (before the distance, without re-normalising) and
 #    recompute the slope and $p(0, 10)$. Which one changes, and why does Eq. (4) predict it?
+#    <details><summary>Hint</summary>Pass <code>10 * desc["raw pixels"]["db"]</code> and the same for the
+#    queries to <code>gds_profile</code>; write what happens to $\mu_b$, $\sigma_b$ and $s$ under the scaling,
+#    and put them into Eqs. (3) and (4).</details>
 # 6. **Pairs = "all".** Profile the database against itself (`pairs="all"`): same-condition pairs. How does
 #    the curve change compared with summer-vs-winter query-database pairs?
+#    <details><summary>Hint</summary>Call <code>gds_profile(db, db_utm, ..., pairs="all")</code> without query
+#    descriptors; the 0 m bin then holds each image paired with itself (distance 0) unless the function
+#    leaves those out: check how many pairs it has.</details>
 #
 # ## Takeaways
 #
@@ -509,7 +613,24 @@ assert abs(_got - _ref) < 1e-12, f"samples rounded to 0.1 (many ties, each count
 # * What the loss compares decides the sensitivity: triplets with negatives 10 m away cut $p(0, 10)$ to well
 #   under half; Multi-Similarity batches of 25 m places raise R@1 a little but barely move $p(0, 10)$
 #   (verdict lines). CliqueMining (notebook 07) changes the batches to push on exactly this.
+
+# %% [markdown]
+# ## Self-check
 #
+# 1. Why does this notebook lead with the mis-ordering probability rather than the GDS slope?
+#    <details><summary>Answer</summary>Retrieval only ranks: what decides a ranking is whether the nearer
+#    image gets the smaller distance, i.e. the gap between bin means relative to their spread (Eq. 3). A
+#    single slope over 0–30 m misses how curved the profiles are at the small distances that matter.</details>
+# 2. On the route, why can Recall@1 stay low for a descriptor that recognises the area well?
+#    <details><summary>Answer</summary>The positives are only one frame wide and the frames 10 m away are
+#    already negatives; if those look about as similar as the right frame, the query fails at rank 1 even though
+#    its top-5 is in the right area: Eq. (5) caps R@1 near $(1 - p(0, 10))^2$.</details>
+# 3. Why does a profile on the city world need heading-consistent pairs?
+#    <details><summary>Answer</summary>Each spot is photographed in 4 headings; two images at the same spot
+#    facing different ways share no content, so their descriptor distance says nothing about geographic
+#    sensitivity and mixing them corrupts the small-distance bins.</details>
+
+# %% [markdown]
 # ## References
 #
 # * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place

@@ -326,6 +326,12 @@ plt.show()
 
 
 # %% [markdown]
+# **Figure 1.** One clique batch of the city (left): every image (light grey), the images of the batch's
+# groups and the edges of Eq. (2) between them (grey), and the 16 places of the batch (one colour each).
+# Right: for every image of 20 clique and 20 random batches, the distance to the nearest image of another
+# place of its batch (its hardest geographic negative); the dashed line is $\tau$.
+
+# %% [markdown]
 # ## Experiment: random vs random + clique halves, the paper's protocol at course scale
 #
 # Model: `course_backbone(trainable_blocks=1)` (only the final 1×1 projection and the token layer train, as the
@@ -474,6 +480,11 @@ axes[0].legend(fontsize=7)
 plt.tight_layout()
 plt.show()
 
+# %% [markdown]
+# **Figure 2.** Reproduce profile: $p(5, 10)$, the share of top-5 pairs in geographic order and test R@1 for
+# random and random + clique batches, one dot per seed (grey lines pair the seeds), mean ± standard
+# deviation in black, and the frozen references (dashed).
+
 # %%
 record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "epochs": RUN["train"]["epochs"],
                             "live": {s: {k: round(float(v), 4) for k, v in r.items()} for s, r in live.items()},
@@ -486,37 +497,153 @@ record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "epo
 # A diagnosis of the invariant "different places $\ge \tau$ apart". Write `close_pairs(batch, utm, tau)`: for a
 # batch `(P, K)` of image indices (one row per place) and image positions `utm` $[N, 2]$, the number of
 # unordered pairs of images of *different* places that lie less than `tau` metres apart, as a Python int, in
-# numpy (no `vpr_nb`). A clique batch has none.
+# numpy (no `vpr_nb`). A clique batch has none. Grading runs only the notebook's import cells and your
+# solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-07-close-pairs", "locked": false, "schema_version": 3, "solution": true}
 def close_pairs(batch, utm, tau):
     ### BEGIN SOLUTION
     batch = np.asarray(batch)
-    pts = np.asarray(utm)[batch]                                               # (P, K, 2)
-    d = np.linalg.norm(pts[:, None, :, None] - pts[None, :, None, :], axis=-1)   # (P, P, K, K)
-    upper = np.triu(np.ones((len(batch), len(batch)), dtype=bool), k=1)         # place pairs p1 < p2
-    return int((d[upper] < tau).sum())
+    xy = np.asarray(utm, float)[batch.reshape(-1)]                             # (P*K, 2)
+    place = np.repeat(np.arange(batch.shape[0]), batch.shape[1])
+    gap = np.sqrt(((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1))
+    other = place[:, None] < place[None, :]                                     # each pair of places once
+    return int(np.count_nonzero((gap < tau) & other))
     ### END SOLUTION
 
 
 # %% nbgrader={"grade": true, "grade_id": "ex-07-close-pairs-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
 toy = np.array([[0.0, 0.0], [1.0, 0.0], [30.0, 0.0], [31.0, 0.0], [10.0, 0.0], [50.0, 0.0]])
-got = close_pairs(np.array([[0, 1], [2, 3]]), toy, 25.0)
-assert isinstance(got, (int, np.integer)) and got == 0, f"places at 0-1 m and 30-31 m, tau 25: expected 0 close pairs, got {got!r}"
-got = close_pairs(np.array([[0, 1], [4, 5]]), toy, 25.0)
-assert got == 2, f"places {{0 m, 1 m}} and {{10 m, 50 m}}, tau 25: expected 2 close pairs (0-10 m, 1-10 m), got {got!r}"
+check("close_pairs", [Case("places at 0-1 m and 30-31 m, tau 25: no close pair", (np.array([[0, 1], [2, 3]]), toy, 25.0),
+                           expect=0),
+                      Case("places {0 m, 1 m} and {10 m, 50 m}, tau 25: 2 close pairs (0-10 m, 1-10 m)",
+                           (np.array([[0, 1], [4, 5]]), toy, 25.0), expect=2)])
 ### BEGIN HIDDEN TESTS
-from vpr_nb.assignments import assert_own_code
-assert_own_code(close_pairs)
-_rng = np.random.default_rng(2)
-_utm = _rng.uniform(0, 100, (200, 2))
-_b = _rng.permutation(200)[:24].reshape(6, 4)
-_ref = sum(int(np.linalg.norm(_utm[i] - _utm[j]) < 20.0) for a in range(6) for c in range(a + 1, 6)
-           for i in _b[a] for j in _b[c])
-got = close_pairs(_b, _utm, 20.0)
-assert got == _ref, f"6 random places x 4 images in a 100 m square, tau 20: expected {_ref} close pairs, got {got!r}"
-got = close_pairs(_b[:1], _utm, 1e9)
-assert got == 0, f"a batch of one place has no pair of different places: expected 0, got {got!r}"
+rng = np.random.default_rng(2)
+utm_h = rng.uniform(0, 100, (200, 2))
+b_h = rng.permutation(200)[:24].reshape(6, 4)
+ref = sum(int(np.linalg.norm(utm_h[i] - utm_h[j]) < 20.0) for a in range(6) for c in range(a + 1, 6)
+          for i in b_h[a] for j in b_h[c])
+check("close_pairs", [Case("6 random places x 4 images in a 100 m square, tau 20", (b_h, utm_h, 20.0), expect=ref),
+                      Case("a batch of one place has no pair of different places", (b_h[:1], utm_h, 1e9), expect=0)])
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Graded exercise: predict, then choose the batch with the hardest negatives
+#
+# In a clique batch every place is at least $\tau$ from every image chosen before it (step 4 of the
+# Theory), so an image's hardest *geographic* negative, the nearest image of another place of its batch,
+# lies at least $\tau$ away.
+#
+# **Predict first:** if the same-place threshold $\tau$ doubles, do the hardest negatives of clique batches
+# get `"closer"`, `"farther"`, or stay at `"the same"` distance? Replace the `raise` below by
+# `NEGATIVES_IF_TAU_DOUBLES = "..."` with one of those three strings.
+
+# %% tags=["grade-deps:ex-07-tau-predict", "grade-deps:ex-07-pick-batch"]
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
+
+# %% nbgrader={"grade": false, "grade_id": "ex-07-tau-predict", "locked": false, "schema_version": 3, "solution": true}
+### BEGIN SOLUTION
+NEGATIVES_IF_TAU_DOUBLES = "farther"
+### END SOLUTION
+
+# %% nbgrader={"grade": true, "grade_id": "ex-07-tau-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check, one_of
+
+check("NEGATIVES_IF_TAU_DOUBLES", [Case("your prediction", rubric=one_of("closer", "farther", "the same"))], call=False)
+### BEGIN HIDDEN TESTS
+check("NEGATIVES_IF_TAU_DOUBLES", [Case("the hardest geographic negatives of clique batches when tau doubles",
+                                        expect="farther")], call=False)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# **Then choose.** You are given candidate batches (each a `(P, K)` integer array of image indices, one row
+# per place) and the image positions `utm` $[N, 2]$. Write `pick_clique_batch(batches, utm, tau)`: the index
+# of the batch that CliqueMining could have produced (every place's images pairwise closer than `tau`,
+# images of different places at least `tau` apart, no image twice) and, among those, gives the **hardest
+# negatives**: the smallest median, over its images, of the distance to the nearest image of another place.
+# Return a Python int, or -1 when no candidate is a valid clique batch, in numpy (no `vpr_nb`).
+
+# %% nbgrader={"grade": false, "grade_id": "ex-07-pick-batch", "locked": false, "schema_version": 3, "solution": true}
+def pick_clique_batch(batches, utm, tau):
+    ### BEGIN SOLUTION
+    utm = np.asarray(utm, float)
+    best, best_median = -1, np.inf
+    for index, batch in enumerate(batches):
+        batch = np.asarray(batch)
+        if len(np.unique(batch)) != batch.size:
+            continue
+        xy = utm[batch]                                                             # (P, K, 2)
+        gaps = np.linalg.norm(xy[:, :, None, None, :] - xy[None, None, :, :, :], axis=-1)   # (P, K, P, K)
+        mine = np.eye(len(batch), dtype=bool)[:, None, :, None]
+        mine = np.broadcast_to(mine, gaps.shape)
+        if not (gaps[mine] < tau).all() or not (gaps[~mine] >= tau).all():
+            continue
+        nearest = np.where(mine, np.inf, gaps).min(axis=(2, 3))                    # (P, K)
+        if np.median(nearest) < best_median:
+            best, best_median = index, float(np.median(nearest))
+    return int(best)
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-07-pick-batch-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+line = np.stack([np.array([0.0, 2.0, 30.0, 32.0, 100.0, 102.0, 12.0]), np.zeros(7)], axis=1)   # positions on a line
+far = np.array([[0, 1], [4, 5]])          # valid, nearest other place about 100 m away
+near = np.array([[0, 1], [2, 3]])         # valid, about 30 m
+false_neg = np.array([[0, 1], [6, 2]])    # places 10 m apart: a "negative" within tau (not a clique batch)
+check("pick_clique_batch", [Case("tau 25: candidates [far, near, too close]", ([far, near, false_neg], line, 25.0),
+                                 expect=1),
+                            Case("tau 25: no valid candidate", ([false_neg], line, 25.0), expect=-1)])
+### BEGIN HIDDEN TESTS
+rng = np.random.default_rng(9)
+
+
+def make_world(spacing, places=8, k=3):            # places along a line, k images within 0.5 m of each centre
+    centres = spacing * np.arange(places)
+    return np.stack([np.repeat(centres, k) + rng.uniform(-0.5, 0.5, places * k),
+                     rng.uniform(-0.5, 0.5, places * k)], axis=1)
+
+
+def reference(batches, utm, tau):                  # image by image, pair by pair
+    best, best_median = -1, float("inf")
+    for index, batch in enumerate(batches):
+        flat = [int(i) for row in batch for i in row]
+        if len(set(flat)) != len(flat):
+            continue
+        near = []
+        ok = True
+        for p, row in enumerate(batch):
+            for i in row:
+                same = [float(np.hypot(*(utm[i] - utm[j]))) for j in row if j != i]
+                other = [float(np.hypot(*(utm[i] - utm[j]))) for q, r in enumerate(batch) if q != p for j in r]
+                ok = ok and all(d < tau for d in same) and all(d >= tau for d in other)
+                near.append(min(other) if other else float("inf"))
+        if ok and float(np.median(near)) < best_median:
+            best, best_median = index, float(np.median(near))
+    return best
+
+
+utm_h = np.concatenate([make_world(40.0), make_world(28.0) + [1000.0, 0.0], make_world(90.0) + [5000.0, 0.0]])
+valid_40, valid_28, valid_90 = (np.arange(24).reshape(8, 3) + off for off in (0, 24, 48))
+repeated = valid_28.copy()
+repeated[1, 0] = repeated[0, 0]                    # the same image in two places
+split = valid_28.copy()
+split[0, 2], split[1, 2] = valid_28[1, 2], valid_28[0, 2]     # two places swap an image: not pairwise < tau
+cases = [("tau 25: places 40, 28 and 90 m apart", [valid_40, valid_28, valid_90], 25.0, 1),
+         ("tau 30: the 28 m batch has negatives within tau", [valid_40, valid_28, valid_90], 30.0, 0),
+         ("tau 25: a repeated image and a place split across two places are not clique batches",
+          [repeated, split, valid_90, valid_40], 25.0, 3),
+         ("tau 45: only the 90 m batch is valid", [valid_40, valid_28, valid_90], 45.0, 2)]
+assert all(reference(b, utm_h, t) == want for _, b, t, want in cases), "the instructor's cases disagree with the reference"
+check("pick_clique_batch", [Case(name, (b, utm_h, t), expect=want) for name, b, t, want in cases])
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -549,16 +676,31 @@ assert got == 0, f"a batch of one place has no pair of different places: expecte
 # 1. **Refresh.** Pass no `group_descriptors` and `refresh_every=1` to `CliqueBatchMaker`: the group
 #    descriptors then come from the model being trained, every epoch (not the paper's protocol). Does the
 #    paired difference change?
+#    <details><summary>Hint</summary>Build the batch maker as the training cell does, but with
+#    <code>group_descriptors=None, refresh_every=1</code>, and train both samplers on the same seeds; compare them
+#    with <code>results.paired_verdict</code>, not one run each.</details>
 # 2. **Threshold.** On the route, try $\tau = 25$ m (the paper's value) with places of 10 frames. The MS loss
 #    then pulls together images 22.5 m apart: what happens to $p(5, 10)$ and to R@1 at ±1 frame?
+#    <details><summary>Hint</summary>With $\tau$ = 25 m a place spans 10 frames, so the loss treats frames
+#    22.5 m apart as the same place while the evaluation's positives are ±1 frame: read $p(5, 10)$ and R@1
+#    from the evaluation cell for both thresholds.</details>
 # 3. **One city.** Call `clique_batches` on `city` without `headings`: how many places mix headings (use
 #    `heading_spread`)? And on a multi-city set, drop `regions`: how far apart are the places of a batch
 #    (`batch_statistics`)?
+#    <details><summary>Hint</summary><code>heading_spread(batch, d["heading"])</code> gives the largest heading
+#    difference inside the places of a batch; count the places above 45°. For the multi-city set,
+#    <code>batch_statistics</code> reports the place-centre distances.</details>
 # 4. **Similar groups.** Set `similar_groups=0`: cliques from the anchor group only. How many anchors does a
 #    batch need, and how do the place distances change?
+#    <details><summary>Hint</summary>With no similar groups a batch of 16 places must come from many
+#    anchor groups, each giving only the cliques of its own group; count the distinct anchors per batch and
+#    compare the median place distance of <code>batch_statistics</code>.</details>
 # 5. **Speed.** Run `python bench/bench_mining.py --quick` and read `bench/reference_clique.py`: why is a new
 #    networkx graph per place so much slower than one k-d tree per anchor and an alive mask, and why is the
 #    cost per batch flat in the number of geotags?
+#    <details><summary>Hint</summary>Count what each implementation rebuilds per place: a graph over all
+#    images of the candidate groups, or a tree built once and a mask updated per place; then ask which costs
+#    depend on the total number of geotags.</details>
 #
 # ## Takeaways
 #
@@ -571,7 +713,25 @@ assert got == 0, f"a batch of one place has no pair of different places: expecte
 # * Fine-tuning the course backbone + SALAD moves the model into the "close but not there" regime, but there
 #   the paired comparison gives no R@1 verdict and a worse $p(5, 10)$ for clique batches (verdict cell): at this
 #   scale, hard negatives 5 m away that look like the positives do not teach the geographic order.
+
+# %% [markdown]
+# ## Self-check
 #
+# 1. What does CliqueMining change in training, and what does it leave as it is?
+#    <details><summary>Answer</summary>Only the batches: places are cliques of the geographic graph of similar
+#    groups of one city, with negatives just beyond the same-place threshold. The model, the loss (one
+#    Multi-Similarity loss per half) and the optimiser stay the same, and the baseline's second half is random
+#    places with the same place definition.</details>
+# 2. Why must a place fit inside the evaluation's positive radius and, in the city, face one way?
+#    <details><summary>Answer</summary>The loss pulls the images of a place together: if they are farther
+#    apart than the positive radius, or face different ways and share no content, it pulls together images that
+#    the evaluation (or the scene) does not consider the same place.</details>
+# 3. In Eq. (1), which groups of the anchor's city are the most likely to be drawn, and which is never drawn?
+#    <details><summary>Answer</summary>The groups whose descriptor is closest to the anchor's are the most
+#    likely (weight $\max_k d_k - d_j$); the farthest group has weight 0 and never comes, and neither does the
+#    anchor itself.</details>
+
+# %% [markdown]
 # ## References
 #
 # * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place

@@ -150,6 +150,11 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
+# **Figure 1.** The reproduction command's run of `synthetic-city-triplet` (as read back from its
+# `results.json`): mean training loss per epoch (left), validation Recall@1 per epoch and the test Recall@1
+# of the best-validation weights (right, dashed).
+
+# %% [markdown]
 # ## The papers' tables beside ours
 #
 # Published numbers (R@1 / R@5 / R@10, %) as collected in the course's reference notes: DW-T-Loss's
@@ -241,6 +246,10 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
+# **Figure 2.** Published R@1 of DINOv2-SALAD with and without CliqueMining on MSLS Challenge, Nordland
+# and MSLS Val (the ECCV 2024 paper's table), axis from 0.
+
+# %% [markdown]
 # ## Details that move the numbers, and what the presets do
 #
 # | detail | variants in public code | effect | presets here |
@@ -264,38 +273,116 @@ record("08_reproduction", {"synthetic-city-triplet (epochs=%d)" % epochs: {f"R@{
 # sections, each a dict of values, as `resolve_config` returns them; the `"preset"` entry is not a section):
 # the sorted list of `"section.key=value"` strings, one per value that differs, such that
 # `resolve_config(preset, overrides_between(base, target)) == target` when `base` is `preset`'s config. Write
-# strings as they are and every other value as JSON (`json.dumps`). Plain Python (no `vpr_nb`).
+# strings as they are and every other value as JSON (`json.dumps`). Plain Python (no `vpr_nb`). Grading runs
+# only the notebook's import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-08-overrides-between", "locked": false, "schema_version": 3, "solution": true}
 def overrides_between(base, target):
     ### BEGIN SOLUTION
-    out = []
-    for section, values in target.items():
-        if not isinstance(values, dict):
-            continue
-        for key, value in values.items():
-            if base[section][key] != value:
-                out.append(f"{section}.{key}={value if isinstance(value, str) else json.dumps(value)}")
-    return sorted(out)
+    def text(value):
+        return value if isinstance(value, str) else json.dumps(value)
+
+    changed = [(name, key, value) for name, section in target.items() if isinstance(section, dict)
+               for key, value in section.items() if value != base[name][key]]
+    return sorted(f"{name}.{key}={text(value)}" for name, key, value in changed)
     ### END SOLUTION
 
 
 # %% nbgrader={"grade": true, "grade_id": "ex-08-overrides-between-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check
+
 toy_base = {"preset": "toy", "train": {"lr": 0.1, "epochs": 3}, "source": {"loss": "triplet"}}
 toy_target = {"preset": "toy", "train": {"lr": 0.001, "epochs": 3}, "source": {"loss": "dw-triplet"}}
-got = overrides_between(toy_base, toy_target)
-assert got == ["source.loss=dw-triplet", "train.lr=0.001"], f"expected ['source.loss=dw-triplet', 'train.lr=0.001'], got {got!r}"
-assert overrides_between(toy_base, toy_base) == [], f"equal configs: expected [], got {overrides_between(toy_base, toy_base)!r}"
+check("overrides_between", [Case("toy configs", (toy_base, toy_target), expect=["source.loss=dw-triplet", "train.lr=0.001"]),
+                            Case("equal configs", (toy_base, toy_base), expect=[])])
 ### BEGIN HIDDEN TESTS
-from vpr_nb.assignments import assert_own_code
-assert_own_code(overrides_between)
-base = resolve_config("dwt-pitts30k")
-for sets in (["source.loss=triplet"], ["train.lr=1e-3", "eval.ns=[1, 5]"], ["train.epochs=2", "model.aggregator=gem"]):
+from vpr_nb.train import resolve_config
+
+
+def rebuilds(sets):
     target = resolve_config("dwt-pitts30k", sets)
-    got = overrides_between(base, target)
-    assert resolve_config("dwt-pitts30k", got) == target, f"--set {sets}: expected overrides that rebuild it, got {got!r}"
-    assert len(got) == len(sets), f"--set {sets}: expected {len(sets)} overrides (one per changed value), got {got!r}"
-assert base == resolve_config("dwt-pitts30k"), "the input config must not change"
+
+    def rubric(got):
+        if not isinstance(got, list) or not all(isinstance(g, str) for g in got):
+            return f"expected a list of strings, got {got!r:.120}"
+        if len(got) != len(sets):
+            return f"expected {len(sets)} overrides (one per changed value), got {got!r}"
+        try:
+            rebuilt = resolve_config("dwt-pitts30k", got)
+        except ValueError as err:
+            return f"resolve_config refuses your overrides {got!r}: {err}"
+        return None if rebuilt == target else f"your overrides {got!r} do not rebuild the target config"
+    return rubric
+
+
+base = resolve_config("dwt-pitts30k")
+check("overrides_between", [Case(f"--set {sets} on dwt-pitts30k", (base, resolve_config("dwt-pitts30k", sets)),
+                                 rubric=rebuilds(sets))
+                            for sets in (["source.loss=triplet"], ["train.lr=1e-3", "eval.ns=[1, 5]"],
+                                         ["train.epochs=2", "model.aggregator=gem"])])
+### END HIDDEN TESTS
+
+# %% [markdown]
+# ## Graded exercise: predict, then measure what "queries without a positive" do to Recall@1
+#
+# Two conventions meet in the tables above: a query with no database image within the positive radius
+# either **counts as a miss** (`"all"`: NetVLAD's code, gmberton's benchmark, GSV-Cities) or is **left out**
+# (`"exclude"`: MSLS's official evaluation).
+#
+# **Predict first:** on the same retrievals, which convention gives the higher (or equal) Recall@1, whatever
+# the model? Replace the `raise` below by `HIGHER_CONVENTION = "..."` with one of `"all"`, `"exclude"`,
+# `"it depends"`.
+
+# %% tags=["grade-deps:ex-08-convention-predict", "grade-deps:ex-08-conventions"]
+import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
+
+# %% nbgrader={"grade": false, "grade_id": "ex-08-convention-predict", "locked": false, "schema_version": 3, "solution": true}
+### BEGIN SOLUTION
+HIGHER_CONVENTION = "exclude"
+### END SOLUTION
+
+# %% nbgrader={"grade": true, "grade_id": "ex-08-convention-predict-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+from vpr_nb.assignments import Case, check, one_of
+
+check("HIGHER_CONVENTION", [Case("your prediction", rubric=one_of("all", "exclude", "it depends"))], call=False)
+### BEGIN HIDDEN TESTS
+check("HIGHER_CONVENTION", [Case("the convention with the higher Recall@1 on the same retrievals",
+                                 expect="exclude")], call=False)
+### END HIDDEN TESTS
+
+# %% [markdown]
+# **Then measure.** Write `recall_at_1_both(top1_correct, has_positive)` for two boolean numpy arrays over the
+# queries: whether the top-1 retrieval lies within the positive radius, and whether the query has any
+# database image within it. Return `{"all": ..., "exclude": ...}`, the Recall@1 under each convention, as
+# Python floats, in numpy (no `vpr_nb`). How far apart are the two for a test set in which 10 % of the
+# queries have no positive and the model solves 60 % of the others?
+
+# %% nbgrader={"grade": false, "grade_id": "ex-08-conventions", "locked": false, "schema_version": 3, "solution": true}
+def recall_at_1_both(top1_correct, has_positive):
+    ### BEGIN SOLUTION
+    solved = np.asarray(top1_correct, bool) & np.asarray(has_positive, bool)
+    counted = int(np.count_nonzero(has_positive))
+    return {"all": float(solved.sum() / len(solved)), "exclude": float(solved.sum() / counted)}
+    ### END SOLUTION
+
+
+# %% nbgrader={"grade": true, "grade_id": "ex-08-conventions-tests", "locked": true, "points": 1, "schema_version": 3, "solution": false}
+import numpy as np
+
+from vpr_nb.assignments import Case, check
+
+check("recall_at_1_both", [Case("4 queries, 2 solved, 1 without a positive",
+                                (np.array([True, True, False, False]), np.array([True, True, True, False])),
+                                expect={"all": 0.5, "exclude": 2 / 3}, atol=1e-9)])
+### BEGIN HIDDEN TESTS
+rng = np.random.default_rng(8)
+has = rng.random(500) > 0.12
+hit = (rng.random(500) < 0.55) & has
+check("recall_at_1_both", [
+    Case("500 queries, about 12 % without a positive", (hit, has),
+         expect={"all": float(hit.mean()), "exclude": float(hit[has].mean())}, atol=1e-9),
+    Case("every query has a positive: both conventions agree", (hit[has], has[has]),
+         expect={"all": float(hit[has].mean()), "exclude": float(hit[has].mean())}, atol=1e-9)])
 ### END HIDDEN TESTS
 
 # %% [markdown]
@@ -305,11 +392,19 @@ assert base == resolve_config("dwt-pitts30k"), "the input config must not change
 #    `--preset synthetic-city-triplet --out results/city-t`, then set `RUNS_DIR = "../results"` in the
 #    parameters cell and re-run this notebook: both appear as synthetic runs. Which loss wins, and is the gap
 #    bigger than the seed spread of notebook 03?
+#    <details><summary>Hint</summary>Run the two commands from the repository root (the notebook looks for
+#    <code>../results</code> relative to <code>notebooks/</code>); two runs are one seed each, so compare the gap
+#    with the seed-to-seed standard deviation that notebook 03's tables print.</details>
 # 2. Evaluate your run on the gmberton-format fixture:
 #    `python -m vpr_nb.evaluate --run results/city-t --set data.format=gmberton --set data.root=data_fixtures/gmberton/pitts30k --set data.image_size=[32,48] --out results/city-t-eval`.
 #    Why is the number meaningless (look at the fixture's size)?
+#    <details><summary>Hint</summary>Count the fixture's database and query images (<code>ls</code> its
+#    folders): with that many queries, one query more or less moves Recall@1 by how much?</details>
 # 3. Change one detail of the table above in a preset (e.g. `--set source.num_negatives=5`) and predict
 #    the direction of the change before running it.
+#    <details><summary>Hint</summary>Write the prediction down first, with a reason from the "effect"
+#    column; then run the preset twice with two seeds (<code>--set train.seed=...</code>) to see whether the
+#    change is larger than the seed spread.</details>
 #
 # ## Takeaways
 #
@@ -319,7 +414,24 @@ assert base == resolve_config("dwt-pitts30k"), "the input config must not change
 #   with `torchrun`), so what the notebooks teach is what the real runs do.
 # * Published numbers depend on protocol details (query subsets, Nordland ground truth, image size);
 #   compare like with like, and say which protocol a number follows.
+
+# %% [markdown]
+# ## Self-check
 #
+# 1. What are the five sections of a run's configuration, and where does each default live?
+#    <details><summary>Answer</summary><code>data</code>, <code>model</code>, <code>source</code>,
+#    <code>train</code> and <code>eval</code>; each default lives once, in the typed config of
+#    <code>vpr_nb/config.py</code>, and a preset holds only its deviations.</details>
+# 2. Why can two papers' Nordland numbers differ by several points for the same model?
+#    <details><summary>Answer</summary>The ground truth differs: ±1 frame (VPR-Bench, GSV-Cities) against 25 m
+#    or ±10 frames; a wider tolerance counts more retrievals as correct (96 % instead of 90 % in the table of
+#    details).</details>
+# 3. What does <code>--set section.key=value</code> do, and what protects you from a typo in the key?
+#    <details><summary>Answer</summary>It changes one entry of the preset's config (a deep copy and one
+#    assignment, parsed by the field's type); <code>resolve_config</code> rejects a key that no section
+#    knows.</details>
+
+# %% [markdown]
 # ## References
 #
 # * *Distance-Ranking-Based Weighted Triplet Loss for Visual Place Recognition* (Xiong, Xu & Meng): the
