@@ -50,9 +50,10 @@ def backbone_fingerprint(path=None) -> str:
 
     import torch
 
+    from .models import read_weights
     from .pretrain import CHECKPOINT
 
-    state = torch.load(Path(path) if path is not None else CHECKPOINT, map_location="cpu", weights_only=True)
+    state = read_weights(Path(path) if path is not None else CHECKPOINT, "course backbone")
     h = hashlib.sha256()
     for k in sorted(state):
         t = state[k].contiguous()
