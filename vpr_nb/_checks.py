@@ -17,7 +17,8 @@ def as_float_matrix(x, name: str, *, dim: int | None = None, allow_empty: bool =
     Accepts numpy arrays, torch tensors (detached, moved to CPU) and nested lists.
     """
     if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
+        x = x.detach().cpu()
+        x = (x.float() if x.dtype in (torch.bfloat16, torch.float16) else x).numpy()   # bfloat16 (AMP's) has no numpy dtype
     try:
         arr = np.asarray(x)
     except Exception as exc:  # pragma: no cover - exotic inputs

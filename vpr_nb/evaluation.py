@@ -42,6 +42,12 @@ def normalize_imagenet(x: torch.Tensor) -> torch.Tensor:
     return (x - torch.tensor(IMAGENET_MEAN).view(3, 1, 1)) / torch.tensor(IMAGENET_STD).view(3, 1, 1)
 
 
+def _is_half(x) -> bool:
+    """Whether ``x`` holds half-precision floats (torch bfloat16 / float16, numpy float16)."""
+    dtype = getattr(x, "dtype", None)
+    return dtype in (torch.bfloat16, torch.float16) or dtype == np.float16
+
+
 def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Exact k-nearest-neighbour search of each query descriptor among the database descriptors.
 
@@ -50,18 +56,25 @@ def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
     distances** ``||q - d||^2 = 2 - 2 <q, d>`` (exact for unit vectors), sorted ascending, so that the
     first column is the best match. Ranking is identical to ``faiss.IndexFlatL2`` on unit vectors.
 
+    Half-precision descriptors (bfloat16 from autocast, float16) are searched in float32: their rows
+    are unit up to their rounding (1e-2) and are re-normalised after the conversion.
+
     Returns ``(distances, indices)`` as float32 / int64 arrays of shape (num_queries, k).
     """
+    half = _is_half(db_desc) or _is_half(q_desc)
     db = as_float_matrix(db_desc, "db_desc")
     q = as_float_matrix(q_desc, "q_desc", dim=db.shape[1])
     k = check_int(k, "k", minimum=1)
     if k > db.shape[0]:
         raise ValueError(f"k={k} is larger than the database ({db.shape[0]} descriptors); "
                          f"use k <= {db.shape[0]}")
-    norms = np.linalg.norm(db, axis=1)
-    if np.abs(norms - 1).max() > 1e-3 or np.abs(np.linalg.norm(q, axis=1) - 1).max() > 1e-3:
+    tol = 1e-2 if half else 1e-3
+    norms, q_norms = np.linalg.norm(db, axis=1), np.linalg.norm(q, axis=1)
+    if np.abs(norms - 1).max() > tol or np.abs(q_norms - 1).max() > tol:
         raise ValueError("descriptors must be L2-normalised (unit rows); "
                          "apply torch.nn.functional.normalize(x, dim=1) or faiss.normalize_L2 first")
+    if half:
+        db, q = db / norms[:, None], q / q_norms[:, None]
     index = faiss.IndexFlatIP(db.shape[1])
     index.add(db)
     sims, idx = index.search(q, k)
@@ -70,7 +83,7 @@ def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[int] = (1, 5, 10, 20),
-                no_positive: str = "exclude") -> dict[int, float]:
+                no_positive: str = "exclude", *, num_db: int | None = None) -> dict[int, float]:
     """Recall@N for each N in ``ns``: a query counts at N if any of its first N predictions is a positive.
 
     ``predictions`` is the (num_queries, k) index array from :func:`retrieve`; ``positives`` the list
@@ -78,6 +91,12 @@ def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[in
     (default, the MSLS convention), left out with a warning; with ``no_positive="all"`` they count as
     misses and the denominator is every query (pytorch-NetVlad, gmberton's benchmark, GSV-Cities).
     :func:`counted_queries` gives the denominator. Returns ``{N: recall}`` with recall in [0, 1].
+
+    ``num_db``, the database size (give it whenever it is known): indices of ``predictions`` and
+    ``positives`` must lie in ``0 .. num_db - 1`` (-1 in ``predictions``: no result, as faiss marks
+    it), else ValueError; and an N larger than the database is answered with Recall@num_db (by then
+    every database image is retrieved) and a warning naming those N. Without it each N needs N
+    predictions per query.
     """
     if no_positive not in ("exclude", "all"):
         raise ValueError(f"no_positive must be 'exclude' or 'all', got {no_positive!r}")
@@ -91,9 +110,26 @@ def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[in
     ns = [check_int(n, "N in ns") for n in ns]
     if not ns:
         raise ValueError("ns is empty: give at least one N, e.g. ns=(1, 5, 10)")
-    if max(ns) > pred.shape[1]:
-        raise ValueError(f"N={max(ns)} needs at least {max(ns)} predictions per query, got {pred.shape[1]}; "
-                         f"retrieve with k >= {max(ns)}")
+    cut = {n: n for n in ns}
+    if num_db is not None:
+        num_db = check_int(num_db, "num_db")
+        beyond = sorted({n for n in ns if n > num_db})
+        if beyond:
+            warnings.warn(f"Recall@N for N = {beyond} is larger than the database ({num_db} images): it equals "
+                          f"Recall@{num_db}, which is reported for those N", stacklevel=2)
+            cut = {n: min(n, num_db) for n in ns}
+    need = max(cut.values())
+    if need > pred.shape[1]:
+        raise ValueError(f"N={need} needs at least {need} predictions per query, got {pred.shape[1]}; "
+                         f"retrieve with k >= {need}")
+    if pred.size and pred.min() < -1:
+        raise ValueError(f"predictions hold the index {int(pred.min())}: database indices are 0 .. num_db - 1 "
+                         f"(-1 marks a missing result)")
+    if num_db is not None and pred.size and pred.max() >= num_db:
+        row = int(np.flatnonzero((pred >= num_db).any(axis=1))[0])
+        raise ValueError(f"predictions hold the index {int(pred.max())} (first in query row {row}) but the "
+                         f"database has {num_db} images (indices 0 .. {num_db - 1}): predictions of another "
+                         f"database?")
     has_pos = np.array([len(p) > 0 for p in positives])
     if not has_pos.any():
         raise ValueError("no query has a positive: check the radius and that database and queries overlap")
@@ -103,6 +139,10 @@ def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[in
     # Vectorised membership test: encode (query, db index) pairs as one int64 key each.
     lengths = np.array([len(p) for p in positives], dtype=np.int64)
     pos_flat = np.concatenate([np.asarray(p, dtype=np.int64).ravel() for p in positives])
+    if pos_flat.size and (pos_flat.min() < 0 or (num_db is not None and pos_flat.max() >= num_db)):
+        bad = int(pos_flat.min() if pos_flat.min() < 0 else pos_flat.max())
+        raise ValueError(f"positives hold the database index {bad}, outside 0 .. "
+                         f"{'num_db - 1' if num_db is None else num_db - 1}")
     width = int(max(pred.max(initial=0), pos_flat.max(initial=0))) + 1
     pos_keys = np.repeat(np.arange(len(positives), dtype=np.int64), lengths) * width + pos_flat
     pred_keys = np.arange(pred.shape[0], dtype=np.int64)[:, None] * width + pred
@@ -111,7 +151,7 @@ def recall_at_n(predictions, positives: Sequence[Iterable[int]], ns: Sequence[in
     first = np.where(hits.any(axis=1), hits.argmax(axis=1), pred.shape[1])
     if no_positive == "exclude":
         first = first[has_pos]
-    return {n: float(np.mean(first < n)) for n in ns}
+    return {n: float(np.mean(first < cut[n])) for n in ns}
 
 
 def counted_queries(positives: Sequence[Iterable[int]], no_positive: str = "exclude") -> int:
@@ -181,9 +221,9 @@ def raw_pixel_descriptors(images) -> np.ndarray:
 
 def _recall(db_desc, q_desc, positives, ns: Sequence[int], no_positive: str) -> dict[int, float]:
     db = as_float_matrix(db_desc, "db_desc")
-    k = min(max(ns), db.shape[0])
-    _, idx = retrieve(db, q_desc, k)
-    return recall_at_n(idx, positives, [n for n in ns if n <= k], no_positive=no_positive)
+    k = min(max(ns, default=1), db.shape[0])
+    _, idx = retrieve(db_desc, q_desc, k)
+    return recall_at_n(idx, positives, ns, no_positive=no_positive, num_db=db.shape[0])
 
 
 def evaluate_descriptors(db_desc, q_desc, db_utm, q_utm, radius: float,

@@ -353,6 +353,9 @@ def _bin_quantiles(sorted_desc: np.ndarray, count: np.ndarray, qs: Sequence[floa
     return out
 
 
+MAX_BINS = 1_000_000   # bins a profile may have (each per-bin statistic is one float64 array of this length)
+
+
 def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: str = "query-db", *,
                 query_descriptors=None, query_utm=None, fit_range: tuple[float, float] = (0.0, 25.0),
                 quantiles: Sequence[float] = (0.1, 0.5, 0.9), keep_pairs: bool = False) -> GDSProfile:
@@ -366,7 +369,7 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
             (``pairs="all"``).
         utm: ``(N, 2)`` positions in metres, aligned with ``descriptors``.
         max_distance: largest geographic distance (m) of a pair that is kept.
-        bin_width: width (m) of the geographic-distance bins.
+        bin_width: width (m) of the geographic-distance bins; at most :data:`MAX_BINS` bins.
         pairs: ``"query-db"`` (needs ``query_descriptors`` and ``query_utm``) or ``"all"``.
         query_descriptors: ``(Q, D)`` query descriptors for ``pairs="query-db"``.
         query_utm: ``(Q, 2)`` query positions for ``pairs="query-db"``.
@@ -388,6 +391,10 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     bin_width = check_positive(bin_width, "bin_width")
     if bin_width > max_distance:
         raise ValueError(f"bin_width ({bin_width}) must not exceed max_distance ({max_distance})")
+    if max_distance / bin_width > MAX_BINS + 1e-9:
+        raise ValueError(f"bin_width={bin_width:g} m over the range [0, {max_distance:g}] m asks for "
+                         f"{max_distance / bin_width:.4g} bins, more than MAX_BINS={MAX_BINS}; use "
+                         f"bin_width >= {max_distance / MAX_BINS:.3g} m")
     lo, hi = _check_fit_range(fit_range)
     qs = tuple(quantiles)
     for q in qs:

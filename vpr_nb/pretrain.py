@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from ._checks import check_int
-from .models import SmallCNN
+from .models import SmallCNN, load_state_checked, read_weights
 from .package_data import checkout_root, course_backbone_path
 
 CHECKPOINT = course_backbone_path()    # vpr_nb/weights/course_backbone.pt, package data (installed with vpr_nb)
@@ -198,12 +198,32 @@ def save_backbone(backbone: SmallCNN, cfg: PretrainConfig, info: dict, out, comm
 
 
 def card(path=CHECKPOINT) -> dict:
-    """The JSON card written beside a course-backbone checkpoint."""
+    """The JSON card written beside a course-backbone checkpoint.
+
+    FileNotFoundError when it is missing; ValueError naming the card when it is not a JSON object
+    holding ``sha256`` (64 hex digits) and ``config`` with the integer ``width`` and ``out_channels``
+    (what :func:`course_backbone` reads)."""
     p = Path(path).with_suffix(".json")
+    remake = f"restore it with git or re-make the pair with `python -m vpr_nb.pretrain --out {Path(path).name}`"
     if not p.is_file():
         raise FileNotFoundError(f"{p} is missing: the checkpoint's card is written by "
                                 f"`python -m vpr_nb.pretrain --out {Path(path).name}`")
-    return json.loads(p.read_text())
+    try:
+        meta = json.loads(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p} is not a readable JSON card ({exc}); {remake}") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{p} holds a JSON {type(meta).__name__}, not the card object; {remake}")
+    sha = meta.get("sha256")
+    if not isinstance(sha, str) or len(sha) != 64 or any(c not in "0123456789abcdef" for c in sha):
+        raise ValueError(f"{p} has no valid 'sha256' (got {sha!r}), so {Path(path).name} cannot be checked "
+                         f"against it; {remake}")
+    config = meta.get("config")
+    bad = [k for k in ("width", "out_channels") if not isinstance(config, dict) or isinstance(config.get(k), bool)
+           or not isinstance(config.get(k), int) or config.get(k) < 1]
+    if bad:
+        raise ValueError(f"{p}: 'config' must hold the positive integers {bad} of the SmallCNN; {remake}")
+    return meta
 
 
 def course_backbone(path=CHECKPOINT, trainable_blocks: int = 0, final_relu: bool = True) -> SmallCNN:
@@ -229,7 +249,7 @@ def course_backbone(path=CHECKPOINT, trainable_blocks: int = 0, final_relu: bool
     if _sha256(path) != meta["sha256"]:
         raise ValueError(f"{path} does not match the sha256 in its card {path.with_suffix('.json').name}: "
                          f"the file was changed or truncated; restore it with git or re-run its command "
-                         f"({meta['command']})")
+                         f"({meta.get('command', 'python -m vpr_nb.pretrain --out ' + str(path))})")
     backbone = _read_backbone(path, meta["config"]["width"], meta["config"]["out_channels"])
     if not final_relu:
         backbone.features[-1] = torch.nn.Identity()
@@ -237,10 +257,13 @@ def course_backbone(path=CHECKPOINT, trainable_blocks: int = 0, final_relu: bool
 
 
 def _read_backbone(path: Path, width: int, out_channels: int) -> SmallCNN:
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    backbone = SmallCNN(width=width, out_channels=out_channels)
-    backbone.load_state_dict({k: v.float() for k, v in state.items()})
-    return backbone
+    """The SmallCNN(width, out_channels) in ``path`` (weights-only, float32); one-line errors
+    (:func:`vpr_nb.models.read_weights`, :func:`vpr_nb.models.load_state_checked`)."""
+    state = read_weights(path, "course backbone")
+    state = {k: v.float() if isinstance(v, torch.Tensor) and v.is_floating_point() else v for k, v in state.items()}
+    return load_state_checked(SmallCNN(width=width, out_channels=out_channels), state, path,
+                              hint=f"its card says SmallCNN(width={width}, out_channels={out_channels}); restore "
+                                   f"the pair with git or re-make it with `python -m vpr_nb.pretrain --out {path}`")
 
 
 def main(argv=None) -> int:

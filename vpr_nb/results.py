@@ -52,9 +52,10 @@ def backbone_fingerprint(path=None) -> str:
 
     import torch
 
+    from .models import read_weights
     from .pretrain import CHECKPOINT
 
-    state = torch.load(Path(path) if path is not None else CHECKPOINT, map_location="cpu", weights_only=True)
+    state = read_weights(Path(path) if path is not None else CHECKPOINT, "course backbone")
     h = hashlib.sha256()
     for k in sorted(state):
         t = state[k].contiguous()
@@ -140,19 +141,50 @@ def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> P
     return path
 
 
+def _json_kind(value) -> str:
+    return {dict: "object", list: "array", str: "string", bool: "boolean", int: "number", float: "number"}.get(
+        type(value), "null")
+
+
+def _read_doc(path: Path) -> dict:
+    """The JSON object of a results file, with the keys :func:`save` writes; ValueError naming the file."""
+    fix = (f"restore it with `git checkout -- notebooks/results/{path.name}` or re-run the notebook with "
+           f"PROFILE = 'reproduce' and commit")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path} is not UTF-8 text (byte {exc.start}); {fix}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno}; "
+                         f"truncated?); {fix}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path} holds a JSON {_json_kind(doc)}, not a results object "
+                         f"{{'config', 'results', ...}}; {fix}")
+    for key, kind in (("config", dict), ("results", dict), ("course_backbone", str)):
+        if key not in doc:
+            raise ValueError(f"{path} has no {key!r} entry, so it is not a results file written by "
+                             f"vpr_nb.results.save; {fix}")
+        if not isinstance(doc[key], kind):
+            raise ValueError(f"{path}: its {key!r} entry is a JSON {_json_kind(doc[key])}, not "
+                             f"{'an object' if kind is dict else 'a string'}; {fix}")
+    return doc
+
+
 def load(name: str, config: Mapping, *, results_dir=None) -> dict:
     """The committed results of notebook ``name``; ``config`` must equal the one they were made with,
     on today's course backbone and synthetic world(s) (the module docstring lists the keys).
 
-    Raises ``FileNotFoundError`` when nothing is committed and ``ValueError`` naming what differs
-    when the notebook's experiment, the backbone or a world changed since (the results are stale).
+    Raises ``FileNotFoundError`` when nothing is committed, ``ValueError`` naming the file when it is
+    not a results file (not JSON, truncated, not an object, or without its ``config`` / ``results`` /
+    ``course_backbone`` entries) and ``ValueError`` naming what differs when the notebook's experiment,
+    the backbone or a world changed since (the results are stale).
     """
     path = _path(name, results_dir)
     if not path.is_file():
         raise FileNotFoundError(f"no committed reproduce-profile results at notebooks/results/{path.name}; "
                                 f"run the notebook with PROFILE = 'reproduce' (make reproduce) and commit the file")
-    doc = json.loads(path.read_text(encoding="utf-8"))
-    want, have = _canonical(config), doc.get("config")
+    doc = _read_doc(path)
+    want, have = _canonical(config), doc["config"]
     if want != have:
         keys = sorted(k for k in set(want) | set(have or {}) if (have or {}).get(k) != want.get(k))
         raise ValueError(f"notebooks/results/{path.name} is stale: its experiment config differs from the "
@@ -168,21 +200,47 @@ def load(name: str, config: Mapping, *, results_dir=None) -> dict:
     return doc
 
 
-def mean_std(values) -> tuple[float, float]:
-    """Mean and sample standard deviation (0 for a single value) of a list of numbers."""
-    vals = [float(v) for v in values]
+def _finite_values(values, what: str, labels=None) -> list[float]:
+    """``values`` as floats; ValueError naming ``what`` and the entry (``labels[i]``, else its position)
+    that is not a finite number."""
+    vals = []
+    for i, v in enumerate(values):
+        where = f"seed {labels[i]}" if labels is not None and i < len(labels) else f"entry {i}"
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}, {where}: {v!r} is not a number") from None
+        if not math.isfinite(x):
+            raise ValueError(f"{what}, {where}: the value is {x}, not a finite number (a diverged or failed "
+                             f"run?); re-run that seed or leave it out of every compared method")
+        vals.append(x)
+    return vals
+
+
+def mean_std(values, what: str = "mean_std values") -> tuple[float, float]:
+    """Mean and sample standard deviation (0 for a single value) of a list of finite numbers.
+
+    A NaN / inf / non-number raises ValueError naming ``what`` and the entry."""
+    vals = _finite_values(values, what)
     if not vals:
-        raise ValueError("mean_std needs at least one value")
+        raise ValueError(f"{what}: mean_std needs at least one value")
     m = sum(vals) / len(vals)
     sd = math.sqrt(sum((v - m) ** 2 for v in vals) / (len(vals) - 1)) if len(vals) > 1 else 0.0
     return m, sd
 
 
-def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B") -> str:
-    """A sentence on ``a − b`` over paired seeds: a verdict only when |mean| > 2 standard errors."""
+def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None) -> str:
+    """A sentence on ``a − b`` over paired seeds: a verdict only when |mean| > 2 standard errors.
+
+    Every value must be a finite number: a NaN / inf raises ValueError naming the method and the seed
+    (``seeds[i]`` when given, else the position)."""
     if len(a_vals) != len(b_vals) or not len(a_vals):
         raise ValueError(f"paired_verdict needs the same non-zero number of seeds, got {len(a_vals)} and {len(b_vals)}")
-    diff = [float(x) - float(y) for x, y in zip(a_vals, b_vals)]
+    seeds = None if seeds is None else list(seeds)
+    if seeds is not None and len(seeds) != len(a_vals):
+        raise ValueError(f"seeds names {len(seeds)} seeds but there are {len(a_vals)} paired values")
+    a_f, b_f = _finite_values(a_vals, f"paired_verdict: {a}", seeds), _finite_values(b_vals, f"paired_verdict: {b}", seeds)
+    diff = [x - y for x, y in zip(a_f, b_f)]
     m, sd = mean_std(diff)
     if len(diff) < 2:
         return f"{a} − {b} = {m:+.3f} on one seed: no spread, no verdict"

@@ -6,6 +6,7 @@ column and the row that is wrong, so a loader's error says what to fix in the da
 from __future__ import annotations
 
 import csv
+import io
 import warnings
 from pathlib import Path
 from typing import Sequence
@@ -22,8 +23,7 @@ def read_csv_columns(path: Path, required: Sequence[str]) -> tuple[list[str], di
     ValueError naming the file for an empty file, a missing ``required`` column or a ragged row."""
     if not path.is_file():
         raise FileNotFoundError(f"CSV file not found: {path}")
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = list(csv.reader(fh))
+    rows = list(csv.reader(io.StringIO(read_text(path), newline="")))
     if not rows or not any(h.strip() for h in rows[0]):
         raise ValueError(f"{path}: empty CSV file (no header)")
     header = [h.strip() for h in rows[0]]
@@ -40,6 +40,27 @@ def read_csv_columns(path: Path, required: Sequence[str]) -> tuple[list[str], di
             if h:
                 cols[h].append(v.strip())
     return header, cols
+
+
+def read_text(path: Path) -> str:
+    """The UTF-8 text of ``path`` (a BOM is dropped); ValueError naming the file, the line and the
+    re-encoding fix when it is not UTF-8 (e.g. a latin-1 export)."""
+    data = Path(path).read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        raise ValueError(f"{path}, line {line}: byte 0x{data[exc.start]:02x} at offset {exc.start} is not UTF-8; "
+                         f"the file must be UTF-8 (as the dataset ships it): re-encode it, e.g. "
+                         f"`iconv -f latin1 -t utf-8 {Path(path).name} > fixed.csv`") from None
+
+
+def duplicates(values: Sequence[str]) -> dict[str, list[int]]:
+    """``{value: [data rows, 1-based]}`` of every value that occurs more than once."""
+    rows: dict[str, list[int]] = {}
+    for i, v in enumerate(values, start=1):
+        rows.setdefault(v, []).append(i)
+    return {v: r for v, r in rows.items() if len(r) > 1}
 
 
 def float_column(values: Sequence[str], path, column: str) -> np.ndarray:

@@ -6,12 +6,13 @@ projected to UTM per city (:mod:`vpr_nb.datasets.utm`) and the city is the regio
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .._checks import check_int
-from ._parsing import float_column, read_csv_columns
+from ._parsing import duplicates, float_column, read_csv_columns
 from .split import GeoSplit
 from .utm import latlon_to_utm
 
@@ -26,6 +27,21 @@ def gsv_image_name(city_id: str, place_id: int, year: int, month: int, northdeg:
             f"{str(int(northdeg)).zfill(3)}_{float(lat)}_{float(lon)}_{panoid}.jpg")
 
 
+def _drop_repeated_rows(df: dict[str, list[str]], path) -> dict[str, list[str]]:
+    """``df`` without rows that repeat an earlier row's image (same values in every named column, so
+    the same file name), with a warning naming the file and rows: the image would count twice."""
+    n = len(df["place_id"])
+    rep = list(duplicates(["\x1f".join(df[c][i] for c in _GSV_COLS) for i in range(n)]).values())
+    if not rep:
+        return df
+    drop = sorted(i - 1 for rows in rep for i in rows[1:])
+    first = rep[0]
+    warnings.warn(f"{path}: {len(drop)} row(s) repeat an earlier row (the same image), e.g. data rows {first} "
+                  f"(lines {[r + 1 for r in first]}); each image is counted once", stacklevel=4)
+    keep = np.setdiff1d(np.arange(n), drop)
+    return {c: [v[i] for i in keep] for c, v in df.items()}
+
+
 def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_root=None,
                     check_files: bool = True) -> GeoSplit:
     """Load GSV-Cities: ``Dataframes/<city>.csv`` (columns place_id, year, month, northdeg, city_id,
@@ -36,6 +52,10 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
     by ``i * 10**5`` as in that code, giving global ``db_place`` labels. A training set: every image is a
     database image, there are no queries and no positives radius. lat/lon are projected to UTM per city
     (one zone per city, :func:`latlon_to_utm`); ``db_region`` is the city.
+
+    Rows that repeat an earlier row (the same image) are counted once, with a warning naming the file
+    and rows; a city left without images is named in a warning; a lat/lon outside UTM's range raises
+    ValueError naming the file and row.
     """
     root = Path(root)
     dfdir = root / "Dataframes"
@@ -54,13 +74,15 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
     img_root = Path(images_root) if images_root is not None else root
     img_root = img_root.resolve()
     paths: list[str] = []
-    utm, heading, place, region, zones, years = [], [], [], [], {}, []
+    utm, heading, place, region, zones, years, notes = [], [], [], [], {}, [], []
     for ci, city in enumerate(cities):
         path = dfdir / f"{city}.csv"
         _, df = read_csv_columns(path, _GSV_COLS)
         n = len(df["place_id"])
         if n == 0:
+            notes.append((path, f"lists no image (header only); GSV-Cities city {city!r} is left out"))
             continue
+        df = _drop_repeated_rows(df, path)
         ints = {}
         for c in ("place_id", "year", "month", "northdeg"):
             v = float_column(df[c], path, c)
@@ -68,10 +90,18 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
                 raise ValueError(f"{path}: column {c!r} must hold integers")
             ints[c] = v.astype(np.int64)
         lat, lon = float_column(df["lat"], path, "lat"), float_column(df["lon"], path, "lon")
+        for name, v, lim in (("lat", lat, 84.0), ("lon", lon, 180.0)):
+            bad = np.flatnonzero(np.abs(v) > lim)
+            if len(bad):
+                raise ValueError(f"{path}: column {name!r}, data row {bad[0] + 1} (line {bad[0] + 2}): {v[bad[0]]:g} is "
+                                 f"outside [-{lim:g}, {lim:g}] degrees ({len(bad)} row(s) in all); UTM covers 84 S to "
+                                 f"84 N: fix the geotag (lat/lon swapped?) or drop the row")
         ids, counts = np.unique(ints["place_id"], return_counts=True)
         big = set(ids[counts >= min_img_per_place].tolist())
         keep = np.array([p in big for p in ints["place_id"]], dtype=bool)
         if not keep.any():
+            notes.append((path, f"none of its {len(ids)} place(s) has >= {min_img_per_place} images "
+                                f"(min_img_per_place); GSV-Cities city {city!r} is left out"))
             continue
         e, nth, zone = latlon_to_utm(lat[keep], lon[keep])
         zones[city] = zone
@@ -85,7 +115,10 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
         region.append(np.array([city] * int(keep.sum())))
         years.append(ints["year"][keep] * 100 + ints["month"][keep])
     if not paths:
-        raise ValueError(f"{dfdir}: no place of cities {cities} has >= {min_img_per_place} images")
+        raise ValueError(f"{dfdir}: no place of cities {cities} has >= {min_img_per_place} images "
+                         f"({'; '.join(f'{p.name}: {why}' for p, why in notes)})")
+    for p, why in notes:
+        warnings.warn(f"{p}: {why}", stacklevel=3)
     out = GeoSplit(name="gsv-cities", format="gsv-cities", db_paths=paths, q_paths=[],
                    db_utm=np.concatenate(utm), q_utm=np.zeros((0, 2)), pos_radius=None, train_pos_radius=None,
                    db_heading=np.concatenate(heading), db_place=np.concatenate(place),

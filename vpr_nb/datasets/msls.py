@@ -15,7 +15,7 @@ import numpy as np
 
 from .._checks import check_positive
 from ..evaluation import positives_within
-from ._parsing import bool_column, float_column, read_csv_columns
+from ._parsing import bool_column, duplicates, float_column, read_csv_columns, read_text
 from .split import GeoSplit
 
 # mapillary_sls msls.py ``default_cities`` (also copied in gmberton's format_mapillary.py)
@@ -36,10 +36,13 @@ def _read_key_list(path) -> set[str]:
     if not p.is_file():
         raise FileNotFoundError(f"query key list not found: {p}")
     if p.suffix == ".npy":
-        arr = np.load(p, allow_pickle=False)
+        try:
+            arr = np.load(p, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"{p}: not a .npy array of strings ({exc})") from None
         items = [str(x) for x in arr.reshape(-1)]
     else:
-        items = [ln.strip() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        items = [ln.strip() for ln in read_text(p).splitlines() if ln.strip()]
     if not items:
         raise ValueError(f"{p}: the query key list is empty")
     return {Path(s).stem for s in items}
@@ -50,6 +53,13 @@ def _msls_side(cdir: Path, side: str, exclude_panos: bool, subtask: str | None):
     _, post = read_csv_columns(folder / "postprocessed.csv", _MSLS_POST)
     _, raw = read_csv_columns(folder / "raw.csv", _MSLS_RAW)
     keys = post["key"]
+    for name, col in (("postprocessed.csv", keys), ("raw.csv", raw["key"])):
+        dup = duplicates(col)
+        if dup:
+            key, rows = next(iter(dup.items()))
+            raise ValueError(f"{folder / name}: {len(dup)} key(s) are listed more than once, e.g. {key!r} in data rows "
+                             f"{rows} (lines {[r + 1 for r in rows]}); every image must be listed once: drop the "
+                             f"repeated rows")
     if sorted(keys) != sorted(raw["key"]):
         raise ValueError(f"{folder / 'raw.csv'}: its 'key' column does not list the same images as "
                          f"{folder / 'postprocessed.csv'}")
@@ -67,19 +77,50 @@ def _msls_side(cdir: Path, side: str, exclude_panos: bool, subtask: str | None):
                              f"{v!r} is not a number") from None
         cl.append(int(x) if np.isfinite(x) else -1)
     keep = ~pano if exclude_panos else np.ones(len(keys), bool)
+    n_panos = int((~keep).sum())
     if subtask is not None:
         sub_path = folder / "subtask_index.csv"
         _, sub = read_csv_columns(sub_path, (subtask,))
         if len(sub[subtask]) != len(keys):
             raise ValueError(f"{sub_path}: {len(sub[subtask])} rows but postprocessed.csv has {len(keys)}")
         keep &= bool_column(sub[subtask], sub_path, subtask)
+    # why nothing is left of this side, if nothing is (load_msls names it when a city drops out)
+    if keep.any():
+        why = ""
+    elif not keys:
+        why = f"{side}/postprocessed.csv lists no image"
+    elif n_panos == len(keys):
+        why = f"all {len(keys)} {side} images are panoramas, which exclude_panos=True leaves out"
+    else:
+        why = f"none of its {len(keys) - n_panos} non-panorama {side} images is flagged in subtask_index.csv {subtask!r}"
     heading = float_column(raw["ca"], folder / "raw.csv", "ca")[ridx] if keys else np.zeros(0)
     night = bool_column(post["night"], folder / "postprocessed.csv", "night") if keys else np.zeros(0, bool)
     paths = [str((folder / "images" / f"{k}.jpg").resolve()) for k in keys]
     sel = np.flatnonzero(keep)
     return {"paths": [paths[i] for i in sel], "keys": [keys[i] for i in sel], "utm": utm[sel],
             "heading": heading[sel], "place": np.asarray(cl, dtype=np.int64)[sel], "night": night[sel],
-            "view": np.array(post["view_direction"], dtype=object)[sel].astype(str)}
+            "view": np.array(post["view_direction"], dtype=object)[sel].astype(str), "why": why}
+
+
+def _select(part: dict, sel: np.ndarray, why: str) -> dict:
+    """The images of one city side where ``sel``; ``why`` says why none is left, if none is."""
+    out = {k: ([v[i] for i in np.flatnonzero(sel)] if isinstance(v, list) else v[sel])
+           for k, v in part.items() if k != "why"}
+    out["why"] = part["why"] if not len(part["keys"]) else why
+    return out
+
+
+def _empty_city_notes(city: str, db: dict, q: dict, notes: list) -> None:
+    """A note naming ``city`` and why, when its database or its queries came out empty."""
+    n_db, n_q = len(db["keys"]), len(q["keys"])
+    if not n_db and not n_q:
+        notes.append(f"MSLS city {city!r} has no usable images ({db['why']}; {q['why']}) and is left out")
+    elif not n_q:
+        notes.append(f"MSLS city {city!r} has no usable queries ({q['why']}); its {n_db} database images stay "
+                     f"in the database, but none of its places is queried")
+    elif not n_db:
+        notes.append(f"MSLS city {city!r} has no usable database images ({db['why']}); its {n_q} queries have "
+                     f"no positive")
 
 
 def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str | None = None,
@@ -105,6 +146,10 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
     ``query_keys`` = a path to the list used by others (a ``.txt`` with one key or image path per
     line, or a ``.npy`` of strings such as GSV-Cities ``msls_val_qImages.npy[msls_val_qIdx]``); the
     list is not shipped here, since it is not available offline, so pass its path.
+
+    A city left without queries or database images (header-only CSVs, only panoramas, nothing in the
+    subset) is named in a warning; no usable database image or query in any city, a key listed twice
+    in a CSV, or a CSV that is not UTF-8 raise ValueError naming the file.
     """
     root = Path(root)
     if not root.is_dir():
@@ -133,21 +178,22 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
     train_pos_radius = check_positive(train_pos_radius, "train_pos_radius")
     subtask = "all" if val_subset == "official" else None
     wanted = _read_key_list(query_keys) if query_keys is not None else None
-    db_parts, q_parts = [], []
+    db_parts, q_parts, notes = [], [], []
     for city in cities:
         db = _msls_side(tv / city, "database", exclude_panos, subtask)
         q = _msls_side(tv / city, "query", exclude_panos, subtask)
-        if wanted is not None:
-            sel = np.array([k in wanted for k in q["keys"]], dtype=bool)
-            q = {k: ([v[i] for i in np.flatnonzero(sel)] if isinstance(v, list) else v[sel]) for k, v in q.items()}
+        if wanted is not None and len(q["keys"]):
+            q = _select(q, np.array([k in wanted for k in q["keys"]], dtype=bool),
+                        f"none of its {len(q['keys'])} queries is in {Path(query_keys).name}")
         if val_subset == "official" and len(q["keys"]) and len(db["keys"]):
             has = np.array([len(p) > 0 for p in positives_within(db["utm"], q["utm"], pos_radius)], dtype=bool)
-            q = {k: ([v[i] for i in np.flatnonzero(has)] if isinstance(v, list) else v[has]) for k, v in q.items()}
+            q = _select(q, has, f"none of its {len(q['keys'])} queries has a database image within {pos_radius:g} m")
         elif val_subset == "official":
-            q = {k: (v[:0] if not isinstance(v, list) else []) for k, v in q.items()}
+            q = _select(q, np.zeros(len(q["keys"]), bool), "none can have a positive: the city has no database images")
         for part, lst in ((db, db_parts), (q, q_parts)):
             part["region"] = np.array([city] * len(part["keys"]), dtype=object).astype(str)
             lst.append(part)
+        _empty_city_notes(city, db, q, notes)
 
     def cat(parts, k):
         vals = [p[k] for p in parts]
@@ -160,6 +206,13 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
         if len(got) < len(wanted):
             warnings.warn(f"{query_keys}: {len(wanted) - len(got)} listed key(s) are not queries of {cities}",
                           stacklevel=3)
+    for side, parts in (("database", db_parts), ("query", q_parts)):
+        if not any(len(p["keys"]) for p in parts):
+            why = "; ".join(f"{c}: {p['why']}" for c, p in zip(cities, parts))
+            raise ValueError(f"{tv}: no usable {side} image in any of the cities ({why}); check their "
+                             f"{side}/postprocessed.csv and raw.csv")
+    for note in notes:
+        warnings.warn(note, stacklevel=3)
     # unique_cluster restarts in every city: a place is the pair (city, cluster), numbered globally
     db_cl, q_cl = cat(db_parts, "place"), cat(q_parts, "place")
     db_reg, q_reg = cat(db_parts, "region"), cat(q_parts, "region")

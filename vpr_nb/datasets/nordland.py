@@ -35,6 +35,14 @@ def _frame_of(path: Path) -> int:
     return int(nums[-1])
 
 
+def _queries_without_positive(db_frame: np.ndarray, q_frame: np.ndarray, tol: int) -> np.ndarray:
+    """Indices of the queries with no database frame within ``tol`` frames (sorted search, O(Q log N))."""
+    ref = np.sort(db_frame)
+    at = np.searchsorted(ref, q_frame - tol)          # first reference frame >= f_q - tol
+    ok = (at < len(ref)) & (ref[np.minimum(at, len(ref) - 1)] <= q_frame + tol)
+    return np.flatnonzero(~ok)
+
+
 def load_nordland(root, *, protocol: str = "auto", db_folder: str | None = None, q_folder: str | None = None,
                   query_frame_step: int | None = None, check_files: bool = True) -> GeoSplit:
     """Load Nordland with frame-index ground truth.
@@ -55,6 +63,10 @@ def load_nordland(root, *, protocol: str = "auto", db_folder: str | None = None,
 
     As in gmberton's script, frames get dummy UTM (0, f * 25 / (T + 0.5)) so that ``pos_radius = 25 m``
     gives exactly the T-frame tolerance; frame indices are in ``extras["db_frame"|"q_frame"]``.
+
+    Every query must have a reference frame within T frames (the protocol defines its positives so):
+    folders that do not match (other counts, another stretch, a wrong ``query_frame_step``) raise
+    ValueError naming both folders and the counts, as do two images of one frame.
     """
     root = Path(root)
     if not root.is_dir():
@@ -81,8 +93,20 @@ def load_nordland(root, *, protocol: str = "auto", db_folder: str | None = None,
     q_files = list_images((root / q_folder).resolve())
     db_frame = np.array([_frame_of(p) for p in db_files], dtype=np.int64)
     q_frame = np.array([_frame_of(p) for p in q_files], dtype=np.int64) * step
-    if len(np.unique(db_frame)) != len(db_frame):
-        raise ValueError(f"{root / db_folder}: several database images have the same frame number")
+    for folder, files, frames in ((db_folder, db_files, db_frame), (q_folder, q_files, q_frame)):
+        uniq, counts = np.unique(frames, return_counts=True)
+        if len(uniq) != len(frames):
+            same = [files[i].name for i in np.flatnonzero(frames == uniq[np.argmax(counts > 1)])]
+            raise ValueError(f"{root / folder}: {len(frames) - len(uniq)} image(s) repeat the frame number of "
+                             f"another, e.g. {same[:3]}; keep one image per frame")
+    lonely = _queries_without_positive(db_frame, q_frame, frames_tol)
+    if len(lonely):
+        raise ValueError(f"{root / q_folder} and {root / db_folder} do not match: {len(lonely)} of {len(q_files)} "
+                         f"queries (e.g. {q_files[lonely[0]].name}, frame {q_frame[lonely[0]]}) have no reference "
+                         f"frame within +-{frames_tol} frames among the {len(db_files)} references (frames "
+                         f"{db_frame.min()}..{db_frame.max()}); with query_frame_step={step} the {len(q_files)} "
+                         f"queries need reference frames up to {q_frame.max()}: check that both folders hold "
+                         f"the same stretch of the route, or pass the right query_frame_step")
     as_utm = lambda fr: np.stack([np.zeros(len(fr)), fr * spacing], axis=1)  # noqa: E731
     out = GeoSplit(name=f"nordland_{protocol}", format="nordland", db_paths=[str(p) for p in db_files],
                    q_paths=[str(p) for p in q_files], db_utm=as_utm(db_frame), q_utm=as_utm(q_frame),

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._parsing import duplicates
 from .split import GeoSplit, check_image_files
 
 _PITTS_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages", "numQueries",
@@ -101,6 +102,15 @@ def load_pitts(mat_path, *, images_root=None, check_files: bool = True) -> GeoSp
     which_set = str(which[0])
     db_names = _mat_strings(fields[1], path, "1 (dbImageFns)")
     q_names = _mat_strings(fields[3], path, "3 (qImageFns)")
+    for fld, names in (("1 (dbImageFns)", db_names), ("3 (qImageFns)", q_names)):
+        if not names:
+            raise ValueError(f"{path}: dbStruct field {fld} lists no image; a split needs database images and "
+                             f"queries (is this the right .mat?)")
+        dup = duplicates(names)
+        if dup:
+            name, rows = next(iter(dup.items()))
+            raise ValueError(f"{path}: dbStruct field {fld} lists {len(dup)} image(s) more than once, e.g. {name!r} "
+                             f"at entries {[r - 1 for r in rows]}; each image must be listed once")
     db_utm = _mat_utm(fields[2], len(db_names), path, "2 (utmDb)")
     q_utm = _mat_utm(fields[4], len(q_names), path, "4 (utmQ)")
     num_db = _mat_scalar(fields[5], path, "5 (numImages)")

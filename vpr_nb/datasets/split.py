@@ -54,6 +54,8 @@ class GeoSplit:
     extras: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if not len(self.db_paths):
+            raise ValueError(f"{self.name}: the database is empty; a split needs at least one database image")
         for side in SIDES:
             paths = getattr(self, f"{side}_paths")
             n = len(paths)

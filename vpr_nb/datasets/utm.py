@@ -41,9 +41,13 @@ def latlon_to_utm(lat, lon, zone: int | None = None) -> tuple[np.ndarray, np.nda
     if lat.shape != lon.shape:
         raise ValueError(f"lat and lon must have the same shape, got {lat.shape} and {lon.shape}")
     if not (np.isfinite(lat).all() and np.isfinite(lon).all()):
-        raise ValueError("lat/lon contain NaN or inf")
-    if (np.abs(lat) > 84.0).any() or (np.abs(lon) > 180.0).any():
-        raise ValueError("lat must be within [-84, 84] and lon within [-180, 180] degrees for UTM")
+        first = int(np.flatnonzero(~(np.isfinite(lat) & np.isfinite(lon)).ravel())[0])
+        raise ValueError(f"lat/lon contain NaN or inf (first at flat index {first})")
+    bad = np.flatnonzero(((np.abs(lat) > 84.0) | (np.abs(lon) > 180.0)).ravel())
+    if len(bad):
+        i = int(bad[0])
+        raise ValueError(f"lat must be within [-84, 84] and lon within [-180, 180] degrees for UTM; {len(bad)} "
+                         f"position(s) are not, first at flat index {i}: lat={lat.ravel()[i]:g}, lon={lon.ravel()[i]:g}")
     if zone is None:
         zone = utm_zone(float(lat.mean()), float(lon.mean()))
     zone = check_int(zone, "zone", minimum=1, maximum=60)
