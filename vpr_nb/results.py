@@ -203,6 +203,10 @@ def load(name: str, config: Mapping, *, results_dir=None) -> dict:
 def _finite_values(values, what: str, labels=None) -> list[float]:
     """``values`` as floats; ValueError naming ``what`` and the entry (``labels[i]``, else its position)
     that is not a finite number."""
+    try:
+        values = list(values)
+    except TypeError:
+        raise ValueError(f"{what} must be a list of numbers (one per seed), got {values!r}") from None
     vals = []
     for i, v in enumerate(values):
         where = f"seed {labels[i]}" if labels is not None and i < len(labels) else f"entry {i}"
@@ -248,19 +252,6 @@ def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None) ->
     if abs(m) > 2 * se:
         return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): {a if m > 0 else b} is better"
     return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): within 2 SE, no verdict"
-
-
-def _finite_values(values, name: str) -> list[float]:
-    """``values`` as floats; NaN or inf in any seed is refused, naming the seed."""
-    try:
-        vals = [float(v) for v in values]
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a list of numbers (one per seed), got {values!r}") from None
-    bad = [i for i, v in enumerate(vals) if not math.isfinite(v)]
-    if bad:
-        raise ValueError(f"{name} holds NaN or inf at seed position(s) {bad} ({[vals[i] for i in bad]}): a run "
-                         f"failed or was not recorded; fix or re-run it, a verdict over it means nothing")
-    return vals
 
 
 def control_gate(baseline_vals, start_vals, baseline: str = "baseline",
