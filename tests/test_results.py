@@ -163,3 +163,27 @@ def test_committed_results_match_todays_worlds():
     for path in sorted((NOTEBOOKS / "results").glob("*.json")):
         doc = json.loads(path.read_text())
         assert doc.get("worlds") == results.world_fingerprints(doc["config"]), f"{path.name}: stale world fingerprint"
+
+
+def test_committed_results_are_refused_from_a_dirty_tree_unless_allowed(tmp_path, monkeypatch):
+    """A reproduce run writes notebooks/results/ only from a clean commit; a trial run may opt out."""
+    from vpr_nb import report
+    monkeypatch.setattr(report, "uncommitted_changes", lambda: ["vpr_nb/losses.py"])
+    monkeypatch.setenv("VPR_NB_RESULTS_DIR", str(tmp_path))
+    monkeypatch.delenv(results.ALLOW_DIRTY_ENV, raising=False)
+    with pytest.raises(ValueError, match=r"uncommitted changes \(vpr_nb/losses.py\).*VPR_NB_ALLOW_DIRTY=1"):
+        results.save("99_demo", {"epochs": 1}, {"x": 1})
+    monkeypatch.setenv(results.ALLOW_DIRTY_ENV, "1")
+    path = results.save("99_demo", {"epochs": 1}, {"x": 1})
+    assert "with uncommitted changes" in json.loads(path.read_text())["stamp"]["git commit"]
+    monkeypatch.setattr(report, "uncommitted_changes", lambda: [])
+    monkeypatch.delenv(results.ALLOW_DIRTY_ENV)
+    assert "uncommitted" not in json.loads(results.save("99_demo", {"epochs": 1}, {"x": 1}).read_text())["stamp"]["git commit"]
+
+
+def test_results_files_are_not_changes_of_the_code(monkeypatch):
+    import subprocess
+    from vpr_nb import report
+    out = " M notebooks/results/03_x.json\n M vpr_nb/gds.py\n"
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, stdout=out))
+    assert report.uncommitted_changes() == ["vpr_nb/gds.py"]

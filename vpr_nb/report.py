@@ -154,15 +154,26 @@ def extract_figures(nb: Mapping, stem: str, out_dir) -> list[Path]:
 # ---------------------------------------------------------------------------------------------
 # Runner
 # ---------------------------------------------------------------------------------------------
+RESULTS_PATHS = "notebooks/results"   # what a reproduce run writes: not a change to the code it ran
+
+
+def uncommitted_changes() -> list[str]:
+    """Tracked files that differ from HEAD, except the committed results a reproduce run rewrites
+    (``notebooks/results/``), so a run of the whole sequence stays clean after its first notebook.
+    Raises OSError / CalledProcessError outside a git checkout."""
+    out = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                         capture_output=True, text=True, check=True).stdout
+    paths = [line[3:].strip() for line in out.splitlines() if line.strip()]
+    return [p for p in paths if not p.startswith(RESULTS_PATHS + "/")]
+
+
 def environment_header(profile: str) -> dict:
     """Date, profile, git commit (if available), library versions and core count."""
     head = {"date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "profile": profile}
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                                 text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, check=True).stdout.strip()
-        head["git commit"] = commit + (" (with uncommitted changes)" if dirty else "")
+        head["git commit"] = commit + (" (with uncommitted changes)" if uncommitted_changes() else "")
     except (OSError, subprocess.CalledProcessError):
         head["git commit"] = "unavailable"
     head["python"] = platform.python_version()
@@ -291,7 +302,9 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
         print(f"[{entry['status']:>4}] {src.name} {entry['seconds']:.1f} s"
               + (f"  {entry['error']}" if entry["error"] else ""), flush=True)
         done.append(entry)
-    payload = {"header": header, "notebooks": done}
+    total = sum(nb["seconds"] for nb in done)
+    print(f"[done] {len(done)} notebooks in {total / 60:.1f} min ({profile} profile)", flush=True)
+    payload = {"header": header, "notebooks": done, "total_seconds": round(total, 1)}
     (out / "results.json").write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
     (out / "results.md").write_text(render_markdown(header, done), encoding="utf-8")
     return payload

@@ -33,10 +33,14 @@ import dataclasses
 import datetime as _dt
 import json
 import math
+import os
 from collections.abc import Mapping
 from pathlib import Path
 
 from .package_data import committed_results_dir, results_dir_for_writing
+
+
+ALLOW_DIRTY_ENV = "VPR_NB_ALLOW_DIRTY"   # =1: a trial reproduce run may save from a dirty tree
 
 
 def _canonical(value):
@@ -131,6 +135,14 @@ def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> P
         raise ValueError("config and results must be dicts (the experiment's settings and its tables)")
     path = _path(name, results_dir, write=True)
     stamp = environment_header("reproduce")
+    committed_dir = results_dir is None            # the repository's notebooks/results/: what gets committed
+    if committed_dir and stamp["git commit"].endswith("(with uncommitted changes)") \
+            and os.environ.get(ALLOW_DIRTY_ENV) != "1":
+        from .report import uncommitted_changes
+        raise ValueError(f"refusing to write notebooks/results/{path.name} from a working tree with uncommitted "
+                         f"changes ({', '.join(uncommitted_changes()[:5])}): committed results must come from "
+                         f"a clean commit. Commit (or stash) first; for a trial run set {ALLOW_DIRTY_ENV}=1 "
+                         f"(the file is then stamped 'with uncommitted changes' and must not be committed)")
     stamp["date"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d")
     doc = {"notebook": name, "stamp": stamp, "course_backbone": backbone_fingerprint(),
            "worlds": world_fingerprints(config), "config": _canonical(config), "results": _canonical(results)}
