@@ -54,6 +54,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
 from vpr_nb._checks import as_float_matrix, as_utm, check_geo_descriptors, check_int, check_positive
+from vpr_nb._threads import single_threaded, single_threaded_call
 
 _PAIR_MODES = ("query-db", "all")
 _METHODS = ("gaussian", "empirical")
@@ -223,12 +224,20 @@ def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: n
     ``(|a|^2 + |b|^2) / 32``, i.e. near-duplicate descriptors -- and in chunks whose pairs touch too many
     distinct images, the distance is computed from the difference ``a[i] - b[j]`` instead. Both agree with
     the difference formula to float32 rounding (for unit-norm descriptors: at most about 3e-6, just above
-    the cancellation threshold; the tests require 1e-5).
+    the cancellation threshold; the tests require 1e-5). The products run on one BLAS thread
+    (:func:`vpr_nb._threads.single_threaded`): they are small, and extra threads stall on a busy machine.
     """
-    same = a is b
     out = np.empty(len(i), dtype=np.float32)
     if len(i) == 0:
         return out
+    with single_threaded():
+        _gram_distances_sq(a, b, i, j, out)
+    return np.sqrt(out, out=out)
+
+
+def _gram_distances_sq(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray, out: np.ndarray) -> None:
+    """The chunk loop of :func:`_pair_descriptor_distances`: squared distances into ``out``."""
+    same = a is b
     na = np.einsum("ij,ij->i", a, a)
     nb = na if same else np.einsum("ij,ij->i", b, b)
     pos_a = np.empty(len(a), dtype=np.intp)
@@ -265,7 +274,6 @@ def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: n
         if near.any():
             d2[near] = _direct_distances_sq(a, b, ic[near], jc[near])
         np.maximum(d2, 0.0, out=out[s:s + k])
-    return np.sqrt(out, out=out)
 
 
 def _bin_index(geo: np.ndarray | float, bin_width: float, num_bins: int) -> np.ndarray:
@@ -577,6 +585,7 @@ def _order_stats(geo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return fraction, tau
 
 
+@single_threaded_call
 def topk_order_agreement(q_desc, db_desc, q_utm, db_utm, k: int = 10) -> OrderAgreement:
     """Are the top-k retrievals of each query sorted by geographic distance?
 
