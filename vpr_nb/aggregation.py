@@ -24,6 +24,7 @@ from torch import nn
 
 from ._checks import (_inputs_validated, as_float_matrix, check_int, check_positive, check_tensor, tensor_is_finite,
                       validated_inputs)
+from ._threads import single_threaded_call
 
 def _check_feature_map(x: torch.Tensor, name: str, channels: int | None, finite: bool = True) -> torch.Tensor:
     """Validate a non-empty floating ``[B, C, H, W]`` map whose ``C`` equals ``channels`` (if given);
@@ -144,6 +145,7 @@ class NetVLAD(nn.Module):
         vlad = F.normalize(vlad, p=2, dim=2).flatten(1)
         return F.normalize(vlad, p=2, dim=1)
 
+    @single_threaded_call   # numpy products on one BLAS thread (vpr_nb._threads)
     def init_from_clusters(self, centroids, descriptors) -> None:
         """Initialise the layer from k-means ``centroids`` ``[K, D]`` and sample ``descriptors`` ``[N, D]``.
 
@@ -236,6 +238,7 @@ def sample_local_descriptors(feature_maps: torch.Tensor, per_image: int, seed: i
     return picked.cpu().numpy()
 
 
+@single_threaded_call   # faiss's BLAS and OpenMP loops on one thread (vpr_nb._threads)
 def kmeans_centroids(descriptors, num_clusters: int, niter: int = 100, seed: int = 0) -> np.ndarray:
     """k-means centroids ``[num_clusters, D]`` (float32) of ``descriptors`` ``[N, D]`` with ``faiss.Kmeans``.
 

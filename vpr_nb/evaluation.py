@@ -23,6 +23,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ._checks import as_float_matrix, as_utm, check_int, check_positive
+from ._threads import single_threaded_call
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -55,6 +56,7 @@ def positives_within(db_utm, q_utm, radius: float) -> list[np.ndarray]:
     return [np.asarray(h, dtype=np.int64) for h in hits]
 
 
+@single_threaded_call   # faiss's BLAS and OpenMP loops on one thread (vpr_nb._threads)
 def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Exact k-nearest-neighbour search of each query descriptor among the database descriptors.
 
