@@ -10,6 +10,7 @@ TripletMarginLoss (the cases take turns, round after round; torch is fed the M t
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 from typing import Callable
@@ -78,11 +79,12 @@ def main() -> None:
     times = _median_ms(cases, leaves, repeats, device)
     baseline = times["torch.nn.TripletMarginLoss"]
 
-    print(f"forward+backward, B={b} M={m} D={d}, device={device}, median of {repeats}, "
-          f"torch {torch.__version__}, {torch.get_num_threads()} threads")
-    print(f"{'loss':<30}{'ms':>10}{'ratio':>10}")
+    print(f"load: {os.getloadavg()[0]:.2f} (1-min average) on {os.cpu_count()} cores; forward+backward, B={b} "
+          f"M={m} D={d}, device={device}, median of {repeats}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} threads; time / torch.nn.TripletMarginLoss:")
     for name, ms in times.items():
-        print(f"{name:<30}{ms:>10.3f}{ms / baseline:>10.2f}")
+        if name != "torch.nn.TripletMarginLoss":
+            print(f"  {name:<30}{ms / baseline:>8.2f}")
 
 
 if __name__ == "__main__":

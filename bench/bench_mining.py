@@ -1,30 +1,28 @@
-"""Benchmark: CliqueMining batches (vpr_nb.samplers) -- speed-up, cost per batch against N, memory.
+"""Benchmark: CliqueMining batches (vpr_nb.samplers) against the published sampler's algorithm, in one run.
 
-1. Speed-up over the straightforward formulation of bench/reference_clique.py (a dense adjacency
-   and a new networkx graph per place) on the same inputs: target >= 10x. Both outputs are checked
-   against the invariants (every place pairwise < threshold, places >= threshold apart, no image
-   twice in a batch).
-2. Cost of one 30 x 4 batch against the number of geotags N (10k, 100k, 1M): the per-region index is
-   built once (as CliqueBatchMaker does), then batches are mined with the bit-set clique search
-   (pools up to ``dense_max`` images) and, alternating in the same run, with the previous k-d tree +
-   Python-set search (``dense_max = 0``); both must give identical batches. Target <= 5 ms per batch at
-   1M and flat in N: the fitted exponent of ms-per-batch ~ N^e from 10k to 1M is printed (~0 is flat).
-   Wall and CPU (process) time are both printed: on a loaded machine the wall time is inflated.
-3. Memory (tracemalloc peaks): the index (once) and one batch at 1M geotags, against one call of the
-   published-style reference on one 10k-image city (the published code works city by city). Target:
-   both ratios to the reference <= 1 (the index keeps int32 image indices, builds the group order
-   block by block and keeps the group descriptors as given when each city's ids are consecutive).
+Every printed number is a ratio measured in this run, at the same N for both sides:
 
-Only ratios and times measured in this one run are printed; nothing fails on absolute time (the
-machine may be loaded), only on broken invariants or different batches.
+1. Speed-up over the published algorithm (bench/reference_clique.py: a new ``networkx.Graph`` from a
+   dense adjacency for every place and ``networkx.find_cliques``, city by city, as serizba/cliquemining's
+   ``create_dataset_part``) for N geotags in cities of 10k: CPU time per 30 x 4 batch, both sides built
+   once (our per-region index, the published per-city tables) and then timed alternating round by round.
+   Target >= 10x (the run fails below it). Both outputs are checked against the invariants (every place
+   pairwise < threshold, places >= threshold apart, no image twice in a batch).
+2. Our bit-set clique search against the previous k-d tree + Python-set search (``dense_max = 0``) in the
+   same run: identical batches (checked) and the speed-up.
+3. Flat in N: per-batch time at the largest N over the smallest, and the fitted exponent ``e`` of
+   time ~ N^e, for ours and for the published algorithm.
+4. Memory at the largest N (tracemalloc peaks above the inputs): ours (index + 3 batches) / published
+   (per-city tables + 3 batches), and the 3 batches alone / the published's.
 
-The geotags are MSLS-like: cities of 10k images, each several drives (random walks on a street grid,
-one image every ~3 m, GPS noise) over the same streets, grouped into 25 m cells (the
-``unique_cluster`` analogue); each group descriptor is a 64-D random Fourier feature of the cell
-centre plus noise, L2-normalised. Cities are 100 km apart and labelled as regions.
+The published algorithm needs several cities per batch (a city gives up to ~16 places and is used once
+per batch), so the smallest N holds 5 cities. The geotags are MSLS-like: cities of 10k images, each
+several drives (random walks on a street grid, one image every ~3 m, GPS noise) over the same streets,
+grouped into 25 m cells (the ``unique_cluster`` analogue); each group descriptor is a 64-D random Fourier
+feature of the cell centre plus noise, L2-normalised. Cities are 100 km apart and labelled as regions.
 
-    python bench/bench_mining.py            # 20k geotags for the speed-up, 200 batches per N
-    python bench/bench_mining.py --quick    # 5k geotags for the speed-up, 40 batches per N
+    python bench/bench_mining.py            # N = 50k, 200k, 1M; 10 published batches per round
+    python bench/bench_mining.py --quick    # N = 50k, 100k; 2 published batches per round
 """
 from __future__ import annotations
 
@@ -37,11 +35,10 @@ import tracemalloc
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from reference_clique import reference_clique_batches  # noqa: E402
+from reference_clique import city_tables, published_clique_batches  # noqa: E402
 
-from vpr_nb.samplers import _DENSE_MAX, _checked_miner, clique_batches  # noqa: E402
+from vpr_nb.samplers import _DENSE_MAX, _checked_miner  # noqa: E402
 
-TARGET_MS = 5.0
 CITY = 10_000
 TARGET_SPEEDUP = 10.0
 
@@ -103,91 +100,85 @@ def check_invariants(batches: np.ndarray, utm: np.ndarray, threshold: float) -> 
         assert (d[~np.eye(p, dtype=bool)] >= threshold).all(), "two places closer than the threshold"
 
 
-def timed(fn, *args, **kwargs):
-    t0 = time.perf_counter()
-    out = fn(*args, **kwargs)
-    return out, time.perf_counter() - t0
+def cpu_per_batch(fn, *args) -> tuple[np.ndarray, float]:
+    """(batches, CPU ms per batch) of ``fn(*args)``, whose first array dimension is the batch."""
+    c0 = time.process_time()
+    out = fn(*args)
+    return out, 1e3 * (time.process_time() - c0) / len(out)
 
 
-def main() -> None:
+def traced_peak(fn, *args) -> tuple[object, float]:
+    """(result, tracemalloc peak MiB above the start) of ``fn(*args)``."""
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    out = fn(*args)
+    peak = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
+    tracemalloc.stop()
+    return out, peak
+
+
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="smaller inputs (a smoke run)")
     args = parser.parse_args()
-    n_ref, ref_batches = (5_000, 5) if args.quick else (20_000, 20)
-    n_big, big_batches = (100_000, 100) if args.quick else (1_000_000, 1000)
-    print(f"load: {os.getloadavg()[0]:.2f} (1-min average) on {os.cpu_count()} cores")
-
-    # 1. speed-up over the networkx reference, same inputs
-    utm, groups, desc = geotagged_groups(n_ref, seed=0)
-    kw = dict(places_per_batch=30, images_per_place=4, same_place_threshold=25.0, similar_groups=15,
-              num_batches=ref_batches, seed=0)
-    ours, t_ours = timed(clique_batches, utm, groups, desc, **kw)
-    ref, t_ref = timed(reference_clique_batches, utm, groups, desc, **kw)
-    check_invariants(ours, utm, 25.0)
-    check_invariants(ref, utm, 25.0)
-    print(f"[speed-up] {n_ref:,} geotags, {groups.max() + 1:,} groups, {ref_batches} batches of 30x4 "
-          f"(invariants hold for both)")
-    print(f"  networkx reference: {t_ref:.2f} s   clique_batches: {t_ours:.3f} s   "
-          f"speed-up: {t_ref / t_ours:.1f}x (target >= {TARGET_SPEEDUP:.0f}x, ratio to target "
-          f"{t_ref / t_ours / TARGET_SPEEDUP:.2f})")
-
-    # 2. cost per batch against N, index built once; bit-set search vs the previous set search, alternating
-    sizes = (10_000, 100_000, 1_000_000)
-    n_batches, rounds = (40, 3) if args.quick else (200, 3)
-    wall, cpu = [], []
+    sizes = (50_000, 100_000) if args.quick else (50_000, 200_000, 1_000_000)
+    n_pub, n_ours, rounds = (2, 20, 2) if args.quick else (10, 200, 3)
+    print(f"load: {os.getloadavg()[0]:.2f} (1-min average) on {os.cpu_count()} cores; 30 x 4 batches, threshold "
+          f"25 m, 15 similar groups; CPU time, {rounds} alternating rounds, medians of the per-round ratios")
+    failed = []
+    ours_ms, pub_ms = [], []
     for n in sizes:
-        (utm, groups, desc, regions), t_gen = timed(cities, n, 1)
-        miner, t_index = timed(_checked_miner, utm, groups, desc, 30, 4, 25.0, 15, regions, None, None)
-        miner.mine(5, 99)                                  # warm-up
-        times = {"bit sets": ([], []), "previous": ([], [])}
+        utm, groups, desc, regions = cities(n, 1)
+        miner = _checked_miner(utm, groups, desc, 30, 4, 25.0, 15, regions, None, None)
+        tables = city_tables(groups, desc, regions)
+        miner.mine(2, 99)                                  # warm-up
+        t = {"bit sets": [], "previous": [], "published": []}
         for r in range(rounds):
             outs = {}
             for name, dense_max in (("bit sets", _DENSE_MAX), ("previous", 0)):
                 miner.dense_max = dense_max
-                w0, c0 = time.perf_counter(), time.process_time()
-                outs[name] = miner.mine(n_batches, r)
-                times[name][0].append(1e3 * (time.perf_counter() - w0) / n_batches)
-                times[name][1].append(1e3 * (time.process_time() - c0) / n_batches)
+                outs[name], ms = cpu_per_batch(miner.mine, n_ours, r)
+                t[name].append(ms)
             assert np.array_equal(outs["bit sets"], outs["previous"]), "the bit-set search changed the batches"
+            pub, ms = cpu_per_batch(published_clique_batches, utm, tables, 30, 4, 25.0, 15, n_pub, r)
+            t["published"].append(ms)
+            check_invariants(outs["bit sets"][:20], utm, 25.0)
+            check_invariants(pub, utm, 25.0)
         del miner.dense_max                                # back to the class default
-        check_invariants(outs["bit sets"][:20], utm, 25.0)
-        (w_new, c_new), (w_old, c_old) = [[float(np.median(t)) for t in times[k]] for k in ("bit sets", "previous")]
-        ratio = float(np.median(np.array(times["previous"][1]) / np.array(times["bit sets"][1])))
-        wall.append(w_new)
-        cpu.append(c_new)
-        print(f"[per batch] N={n:>9,}: {groups.max() + 1:,} groups in {regions.max() + 1} cities "
-              f"(generated in {t_gen:.1f} s), index {t_index:.2f} s once; identical batches")
-        print(f"    {w_new:.2f} ms wall / {c_new:.2f} ms CPU per 30x4 batch (ratio to the {TARGET_MS:.0f} ms target: "
-              f"{w_new / TARGET_MS:.2f} wall, {c_new / TARGET_MS:.2f} CPU); previous set search {w_old:.2f} ms wall / "
-              f"{c_old:.2f} ms CPU; speed-up {ratio:.2f}x (CPU, median of {rounds} alternating rounds)")
-    e_wall = np.polyfit(np.log(sizes), np.log(wall), 1)[0]
-    e_cpu = np.polyfit(np.log(sizes), np.log(cpu), 1)[0]
-    print(f"  fitted exponent of ms per batch ~ N^e from {sizes[0]:,} to {sizes[-1]:,}: e = {e_cpu:.3f} (CPU), "
-          f"{e_wall:.3f} (wall) (flat: ~0)")
+        up = float(np.median(np.array(t["published"]) / np.array(t["bit sets"])))
+        up_prev = float(np.median(np.array(t["previous"]) / np.array(t["bit sets"])))
+        ours_ms.append(float(np.median(t["bit sets"])))
+        pub_ms.append(float(np.median(t["published"])))
+        met = up >= TARGET_SPEEDUP
+        if not met:
+            failed.append(f"speed-up at N={n:,}")
+        print(f"[N={n:>9,}: {regions.max() + 1} cities, {groups.max() + 1:,} groups] invariants hold for both; "
+              f"speed-up over the published algorithm {up:.0f}x (target >= {TARGET_SPEEDUP:.0f}x: "
+              f"{'met' if met else 'NOT met'}); over the previous set search {up_prev:.2f}x (identical batches)")
+    e_ours = np.polyfit(np.log(sizes), np.log(ours_ms), 1)[0]
+    e_pub = np.polyfit(np.log(sizes), np.log(pub_ms), 1)[0]
+    print(f"[flat in N] per-batch time at N={sizes[-1]:,} / at N={sizes[0]:,}: ours {ours_ms[-1] / ours_ms[0]:.2f}, "
+          f"published {pub_ms[-1] / pub_ms[0]:.2f}; fitted exponent of time ~ N^e: ours {e_ours:.3f}, "
+          f"published {e_pub:.3f} (flat: ~0)")
 
-    # 3. memory: the index once and one batch at the largest N, the reference on one city
-    tracemalloc.start()
-    tracemalloc.reset_peak()
-    base = tracemalloc.get_traced_memory()[0]
+    # memory at the largest N, same inputs: our index + 3 batches vs the published tables + 3 batches
+    def ours_all():
+        return _checked_miner(utm, groups, desc, 30, 4, 25.0, 15, regions, None, None).mine(3, 7)
+
+    def published_all():
+        return published_clique_batches(utm, city_tables(groups, desc, regions), 30, 4, 25.0, 15, 3, 7)
+
+    _, m_ours = traced_peak(ours_all)
+    _, m_pub = traced_peak(published_all)
     miner = _checked_miner(utm, groups, desc, 30, 4, 25.0, 15, regions, None, None)
-    index_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
-    batch_mb = {}
-    for name, dense_max in (("bit sets", _DENSE_MAX), ("previous", 0)):
-        miner.dense_max = dense_max
-        tracemalloc.reset_peak()
-        base = tracemalloc.get_traced_memory()[0]
-        miner.mine(3, 7)
-        batch_mb[name] = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
-    cu, cg, cd, _ = cities(CITY, 2)
-    tracemalloc.reset_peak()
-    base = tracemalloc.get_traced_memory()[0]
-    reference_clique_batches(cu, cg, cd, 30, num_batches=1, seed=0)
-    ref_mb = (tracemalloc.get_traced_memory()[1] - base) / 2 ** 20
-    tracemalloc.stop()
-    print(f"[memory] N={sizes[-1]:,}: index {index_mb:.1f} MiB (once per run); mining 3 batches: bit sets "
-          f"{batch_mb['bit sets']:.2f} MiB, previous {batch_mb['previous']:.2f} MiB; reference, one call on a "
-          f"{CITY:,}-image city: {ref_mb:.2f} MiB; batch / reference = {batch_mb['bit sets'] / ref_mb:.2f} "
-          f"(target <= 1), index / reference = {index_mb / ref_mb:.2f} (target <= 1)")
+    _, m_batch = traced_peak(miner.mine, 3, 7)
+    _, m_pub_batch = traced_peak(published_clique_batches, utm, tables, 30, 4, 25.0, 15, 3, 7)
+    print(f"[memory, N={sizes[-1]:,}] tracemalloc peak, ours / published: index + 3 batches vs per-city tables + "
+          f"3 batches {m_ours / m_pub:.2f}; the 3 batches alone {m_batch / m_pub_batch:.2f}")
+    if failed:
+        print("failed: " + "; ".join(failed))
+    return 1 if failed else 0
+
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,20 +1,25 @@
-"""Straightforward CliqueMining batch construction, used as the reference in bench/bench_mining.py.
+"""The published CliqueMining sampler's algorithm, the baseline of bench/bench_mining.py (never imported by
+the package).
 
-It follows the published algorithm step by step (Izquierdo & Civera, ECCV 2024; the authors'
-``create_dataset_part``) with plain tools and no optimisation:
+It follows ``create_dataset_part`` of serizba/cliquemining (Izquierdo & Civera, ECCV 2024) step by
+step, written anew with numpy, scipy and networkx on the bench's arrays instead of MSLS dataframes:
 
-1. anchor group uniformly among the groups that have images;
-2. ``similar_groups`` other groups drawn without replacement with ``rng.choice(p=...)``,
-   ``p ∝ max(d) - d`` (d = Euclidean descriptor distance to the anchor, anchor weight 0);
-3. a dense boolean adjacency ``squareform(pdist(utm)) < threshold`` over all images of those groups,
-   with the images already in the batch (and everything within the threshold of them) removed;
-4. for every place: a new ``networkx.Graph`` from the adjacency, the first maximal clique of
-   ``networkx.find_cliques`` with >= m nodes, m random members, then the chosen images and all
-   their neighbours are cut out of the adjacency;
-5. a new anchor when no clique is left, until the batch is full.
+1. a city with probability proportional to its number of clusters (rows of its descriptor table),
+   redrawn while it was already used in this batch;
+2. an anchor cluster uniformly among the city's clusters; weights ``max(d) - d`` over all the city's
+   cluster descriptors (``d`` = Euclidean distance to the anchor's, computed with ``cdist``; the
+   anchor's weight stays 0), normalised, and ``similar_groups`` clusters drawn without replacement;
+3. the city's images whose cluster is one of the 16 (a scan over the whole city, as the dataframe
+   filter ``isin`` does) and a dense adjacency ``squareform(pdist(utm)) < threshold``;
+4. for every place: a new ``networkx.Graph`` from the adjacency and the first maximal clique of
+   ``networkx.find_cliques`` with ``>= images_per_place`` nodes, ``images_per_place`` random members
+   of it; then the rows and columns of the chosen images and of all their neighbours are cleared;
+5. when no such clique is left, back to 1 with a new city, until the batch is full.
 
-Same inputs and output shape as :func:`vpr_nb.samplers.clique_batches`; the batches differ (another
-clique order and random stream) but satisfy the same invariants.
+Differences from the published code, none of which changes its cost: a seeded ``np.random.Generator``
+(the original seeds numpy's global state from pid and time), integer image indices instead of file
+names, and a ``ValueError`` where the original would loop for ever (every city of the data set used
+in one batch before it is full).
 """
 from __future__ import annotations
 
@@ -23,54 +28,57 @@ import numpy as np
 from scipy.spatial.distance import cdist, pdist, squareform
 
 
-def reference_clique_batches(utm, groups, group_descriptors, places_per_batch: int, images_per_place: int = 4,
+def city_tables(groups: np.ndarray, group_descriptors: np.ndarray, regions: np.ndarray) -> dict:
+    """Per city, what the published code loads once: the city's image indices, each image's cluster id
+    within the city (0..C-1, as MSLS's ``unique_cluster``) and the city's ``(C, D)`` descriptor table."""
+    tables = {}
+    for city in np.unique(regions):
+        images = np.flatnonzero(regions == city)
+        ids, local = np.unique(groups[images], return_inverse=True)
+        tables[city] = (images, local.reshape(-1), np.asarray(group_descriptors[ids], dtype=np.float64))
+    return tables
+
+
+def published_clique_batches(utm, tables: dict, places_per_batch: int = 30, images_per_place: int = 4,
                              same_place_threshold: float = 25.0, similar_groups: int = 15,
-                             num_batches: int = 1, seed: int = 0, max_anchors: int = 300) -> np.ndarray:
-    """CliqueMining batches rebuilt the straightforward way (a new networkx graph per place)."""
-    utm = np.asarray(utm, dtype=np.float64)
-    groups = np.asarray(groups, dtype=np.int64)
-    desc = np.asarray(group_descriptors, dtype=np.float64)
-    if utm.ndim != 2 or utm.shape[1] != 2 or len(groups) != len(utm):
-        raise ValueError("utm must be (N, 2) and groups (N,)")
+                             num_batches: int = 1, seed: int = 0) -> np.ndarray:
+    """``(num_batches, places_per_batch, images_per_place)`` image indices, by the published algorithm."""
     rng = np.random.default_rng(seed)
-    present = np.unique(groups)
-    members = {int(g): np.flatnonzero(groups == g) for g in present}  # O(N * G): straightforward
-    k = min(similar_groups, len(present) - 1)
+    cities = list(tables)
+    num_clusters = np.array([len(tables[c][2]) for c in cities], dtype=np.float64)
     out = np.empty((num_batches, places_per_batch, images_per_place), dtype=np.int64)
     for b in range(num_batches):
-        places: list[np.ndarray] = []
-        for _ in range(max_anchors):
-            anchor = int(rng.choice(present))
-            d = cdist(desc[anchor][None], desc[present])[0]
-            w = d.max() - d
-            w[present == anchor] = 0.0
-            if w.sum() == 0 or np.count_nonzero(w) < k:
-                w = (present != anchor).astype(np.float64)
-            chosen_groups = np.concatenate([[anchor], rng.choice(present, size=k, replace=False, p=w / w.sum())])
-            pool = np.sort(np.concatenate([members[int(g)] for g in chosen_groups]))
+        used: list = []
+        filled = 0
+        while filled < places_per_batch:
+            if len(used) == len(cities):
+                raise ValueError(f"batch {b}: every city used with {filled} of {places_per_batch} places "
+                                 f"(the published sampler would loop for ever)")
+            city = cities[rng.choice(len(cities), p=num_clusters / num_clusters.sum())]
+            while city in used:
+                city = cities[rng.choice(len(cities), p=num_clusters / num_clusters.sum())]
+            used.append(city)
+            images, local, desc = tables[city]
+            anchor = rng.choice(np.unique(local))
+            weight = cdist(desc[anchor, None, :], desc)[0]
+            nonzero = weight != 0
+            weight[nonzero] = weight.max() - weight[nonzero]
+            others = rng.choice(len(desc), size=similar_groups, p=weight / weight.sum(), replace=False)
+            pool = images[np.isin(local, np.concatenate([[anchor], others]))]
             adj = squareform(pdist(utm[pool])) < same_place_threshold
-            if places:
-                near_batch = (cdist(utm[pool], utm[np.concatenate(places)]) < same_place_threshold).any(axis=1)
-                adj[near_batch, :] = False
-                adj[:, near_batch] = False
-            np.fill_diagonal(adj, False)
-            while len(places) < places_per_batch:
-                graph = networkx.from_numpy_array(adj.astype(np.int8))
+            while filled < places_per_batch:
                 clique = None
-                for c in networkx.find_cliques(graph):
+                for c in networkx.find_cliques(networkx.Graph(adj)):
                     if len(c) >= images_per_place:
-                        clique = rng.choice(np.array(c), images_per_place, replace=False)
+                        clique = rng.choice(c, images_per_place, replace=False)
                         break
                 if clique is None:
                     break
-                places.append(pool[clique])
-                neighbours = np.flatnonzero(adj[clique].any(axis=0))
-                cut = np.concatenate([clique, neighbours])
-                adj[cut, :] = False
-                adj[:, cut] = False
-            if len(places) == places_per_batch:
-                break
-        if len(places) < places_per_batch:
-            raise ValueError(f"could not fill batch {b}: {len(places)} of {places_per_batch} places")
-        out[b] = np.stack(places)
+                neighbours = np.unique(np.where(adj[clique, :])[1])
+                out[b, filled] = pool[clique]
+                filled += 1
+                adj[:, clique] = False
+                adj[clique, :] = False
+                adj[neighbours, :] = False
+                adj[:, neighbours] = False
     return out

@@ -41,16 +41,15 @@ import time
 import matplotlib.pyplot as plt
 import numpy as np
 
-import vpr_nb
+import vpr_nb.notebook
 from vpr_nb import plots
 from vpr_nb.evaluation import positives_within, raw_pixel_descriptors
 from vpr_nb.report import record
 from vpr_nb.synthetic import SPLITS, WORLD_KINDS, WorldConfig, make_config, make_dataset
 
-if PROFILE not in ("ci", "reproduce"):
-    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
-SIZE = {"ci": "tiny", "reproduce": "small"}[PROFILE]
-vpr_nb.seed_everything(0)
+SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
+BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(size="tiny"), reproduce=dict(size="small"))
+SIZE = BUDGET["size"]
 np.set_printoptions(precision=3, suppress=True)
 print("world size:", SIZE)
 

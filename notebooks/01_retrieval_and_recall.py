@@ -37,9 +37,8 @@ import time
 import faiss
 import matplotlib.pyplot as plt
 import numpy as np
-import torch
 
-import vpr_nb
+import vpr_nb.notebook
 from vpr_nb import plots
 from vpr_nb.evaluation import (compute_descriptors, positives_within, raw_pixel_descriptors, recall_at_n,
                                retrieve)
@@ -47,19 +46,19 @@ from vpr_nb.models import build_model
 from vpr_nb.report import record
 from vpr_nb.synthetic import make_config, make_dataset
 
-if PROFILE not in ("ci", "reproduce"):
-    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
-SEEDS = {"ci": (0, 1), "reproduce": (0, 1, 2, 3, 4)}[PROFILE]      # world seeds averaged in the baselines and the sweep
-SWEEP = {                                                           # knob -> values (the default is always included)
-    "ci": {"condition_strength": [0.0, 0.5, 1.0], "position_jitter": [0.0, 3.0, 8.0],
-           "heading_jitter": [0.0, 8.0, 20.0], "occluder_rate": [0.0, 0.6, 2.0], "num_facade_types": [4, 10, 40]},
-    "reproduce": {"condition_strength": [0.0, 0.25, 0.5, 0.75, 1.0], "position_jitter": [0.0, 1.5, 3.0, 5.0, 8.0],
-                  "heading_jitter": [0.0, 4.0, 8.0, 14.0, 20.0], "occluder_rate": [0.0, 0.6, 1.2, 2.0, 3.0],
-                  "num_facade_types": [4, 6, 10, 20, 40]},
-}[PROFILE]
+SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
+BUDGET = vpr_nb.notebook.budget(       # seeds: world seeds averaged in the baselines and the sweep;
+    PROFILE,                           # sweep: knob -> values (the default is always included)
+    ci=dict(seeds=(0, 1),
+            sweep={"condition_strength": [0.0, 0.5, 1.0], "position_jitter": [0.0, 3.0, 8.0],
+                   "heading_jitter": [0.0, 8.0, 20.0], "occluder_rate": [0.0, 0.6, 2.0],
+                   "num_facade_types": [4, 10, 40]}),
+    reproduce=dict(seeds=(0, 1, 2, 3, 4),
+                   sweep={"condition_strength": [0.0, 0.25, 0.5, 0.75, 1.0], "position_jitter": [0.0, 1.5, 3.0, 5.0, 8.0],
+                          "heading_jitter": [0.0, 4.0, 8.0, 14.0, 20.0], "occluder_rate": [0.0, 0.6, 1.2, 2.0, 3.0],
+                          "num_facade_types": [4, 6, 10, 20, 40]}))
+SEEDS, SWEEP = BUDGET["seeds"], BUDGET["sweep"]
 NS = (1, 5, 10, 20)
-vpr_nb.seed_everything(0)
-torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
 print("world seeds:", SEEDS)
 
 

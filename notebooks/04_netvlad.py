@@ -38,10 +38,6 @@
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
 
 # %% tags=["grade-deps:ex-04-soft-share"]
-import os
-
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # single-threaded numpy BLAS: much faster for the many
-                                                     # small products of the triplet mining on a busy 2-core CPU
 import copy
 import time
 
@@ -50,7 +46,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-import vpr_nb
+import vpr_nb.notebook
 from vpr_nb import plots, results
 from vpr_nb.aggregation import GeM, NetVLAD, kmeans_centroids, sample_local_descriptors
 from vpr_nb.config import LOSSES
@@ -62,8 +58,7 @@ from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import TrainConfig, TripletSource, mean_pairwise_cosine, train
 
-if PROFILE not in ("ci", "reproduce"):
-    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
+SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
 EXPERIMENT = {                 # every setting of the reproduce-profile experiment (notebook 05 reuses it)
     "world": {"preset": "city", "seed": 0, "size": "tiny", "eval split": "test"},
     "backbone": {"checkpoint sha256": card()["sha256"], "features": "before the final ReLU"},
@@ -76,11 +71,9 @@ EXPERIMENT = {                 # every setting of the reproduce-profile experime
     "seeds": [0, 1, 2, 3, 4],                   # fine-tuning seeds (the world is the same)
     "ns": [1, 5, 10],
 }
-RUN = EXPERIMENT if PROFILE == "reproduce" else {**EXPERIMENT, "epochs": 1, "seeds": [0]}
+RUN = vpr_nb.notebook.budget(PROFILE, ci={**EXPERIMENT, "epochs": 1, "seeds": [0]}, reproduce=EXPERIMENT)
 K = EXPERIMENT["netvlad"]["clusters"]       # NetVLAD clusters (64 in the paper, with VGG16's 512 channels)
 NS = tuple(EXPERIMENT["ns"])
-torch.set_num_threads(1)   # one thread: fastest on a shared 2-core CPU, and results independent of the core count
-vpr_nb.seed_everything(0)
 print(f"profile {PROFILE}: {RUN['epochs']} epoch(s) per model, seeds {RUN['seeds']}, K = {K}")
 
 

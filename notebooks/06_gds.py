@@ -43,10 +43,9 @@ import time
 
 import matplotlib.pyplot as plt
 import numpy as np
-import torch
 from scipy.special import ndtr
 
-import vpr_nb
+import vpr_nb.notebook
 from vpr_nb import plots, results
 from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, raw_pixel_descriptors
 from vpr_nb.gds import gds_profile, misordering_matrix, misordering_probability, query_topk, topk_order_agreement
@@ -58,8 +57,7 @@ from vpr_nb.samplers import random_place_batches
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import PlaceBatchSource, TrainConfig, TripletSource, train
 
-if PROFILE not in ("ci", "reproduce"):
-    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
+SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
 SPACING = 5.0                # route frame spacing (m)
 EXPERIMENT = {               # every setting of the reproduce-profile experiment
     "world": {"preset": "route", "seed": 0, "size": "tiny", "eval split": "test"},
@@ -73,14 +71,12 @@ EXPERIMENT = {               # every setting of the reproduce-profile experiment
     "bins": {"width_m": 0.96 * SPACING, "num": 12, "fit_m": [0.0, 30.0]},
     "topk": 5,
 }
-RUN = EXPERIMENT if PROFILE == "reproduce" else {
+RUN = vpr_nb.notebook.budget(PROFILE, reproduce=EXPERIMENT, ci={
     **EXPERIMENT, "seeds": [0], "triplet": {**EXPERIMENT["triplet"], "epochs": 1},
-    "ms": {**EXPERIMENT["ms"], "epochs": 2}}
+    "ms": {**EXPERIMENT["ms"], "epochs": 2}})
 BIN = EXPERIMENT["bins"]["width_m"]   # bin k = [4.8 k, 4.8 (k+1)) holds exactly the pairs k frames apart
 NBINS = EXPERIMENT["bins"]["num"]     # frames 0..11 apart, i.e. 0..55 m
 FIT = tuple(EXPERIMENT["bins"]["fit_m"])   # the slope is fitted over the first 30 m
-torch.set_num_threads(1)     # same floats on every machine (and faster on a shared 2-core box)
-vpr_nb.seed_everything(0)
 print(f"profile {PROFILE}: fine-tuning seeds {RUN['seeds']}, triplets {RUN['triplet']['epochs']} epochs, "
       f"MS {RUN['ms']['epochs']} epochs; bins of {BIN:.1f} m up to {NBINS * BIN:.1f} m")
 

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-import vpr_nb
+import vpr_nb.notebook
 from vpr_nb import results
 from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, raw_pixel_descriptors, retrieve
 from vpr_nb.gds import gds_profile, misordering_probability, topk_order_agreement
@@ -55,8 +55,7 @@ from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import PlaceBatchSource, TrainConfig, train
 
-if PROFILE not in ("ci", "reproduce"):
-    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
+SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
 ROUTE = {"num_facade_types": 60, "colour_variation": 0.3, "frame_spacing": 2.5, "frames_per_group": 2}
 EXPERIMENT = {               # every setting of the reproduce-profile experiment
     "world": {"preset": "route", "seed": 0, "size": "tiny", "overrides": ROUTE, "eval split": "test"},
@@ -72,10 +71,8 @@ EXPERIMENT = {               # every setting of the reproduce-profile experiment
     "eval": {"near miss": "top-1 wrong but within 4 frames", "bin width": "0.96 x frame spacing", "bins": 12,
              "fit_m": [0.0, 30.0], "topk": 5},
 }
-RUN = EXPERIMENT if PROFILE == "reproduce" else {
-    **EXPERIMENT, "seeds": [0], "train": {**EXPERIMENT["train"], "epochs": 2}}
-torch.set_num_threads(1)     # same floats on every machine (and faster on a shared 2-core box)
-vpr_nb.seed_everything(0)
+RUN = vpr_nb.notebook.budget(PROFILE, reproduce=EXPERIMENT, ci={
+    **EXPERIMENT, "seeds": [0], "train": {**EXPERIMENT["train"], "epochs": 2}})
 print(f"profile {PROFILE}: seeds {RUN['seeds']}, {RUN['train']['epochs']} epochs of "
       f"{EXPERIMENT['batch']['batches_per_epoch']} batches of (8 random + 8 clique) places x 4 images")
 

@@ -45,15 +45,13 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-import vpr_nb
+import vpr_nb.notebook
 from vpr_nb.report import RESULTS_ENV, record
 from vpr_nb.train import PRESETS, resolve_config, run
 
-if PROFILE not in ("ci", "reproduce"):
-    raise ValueError(f"PROFILE must be 'ci' or 'reproduce', got {PROFILE!r}")
-vpr_nb.seed_everything(0)
-import torch
-torch.set_num_threads(1)  # same floats on every machine (nbval compares them), and fast on a shared 2-core CPU
+SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
+BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(epochs=2),   # epochs of the synthetic preset's run below
+                                reproduce=dict(epochs=PRESETS["synthetic-city-triplet"]["train"]["epochs"]))
 
 # %% [markdown]
 # ## Theory: a reproduction is a configuration
@@ -125,7 +123,7 @@ for name in sorted(PRESETS):
 # Recall@1 is well below notebook 02's; `make reproduce` runs the preset's full 14 epochs.
 
 # %%
-epochs = {"ci": 2, "reproduce": PRESETS["synthetic-city-triplet"]["train"]["epochs"]}[PROFILE]
+epochs = BUDGET["epochs"]
 cfg = resolve_config("synthetic-city-triplet", [f"train.epochs={epochs}"])
 with tempfile.TemporaryDirectory() as tmp:
     out = Path(tmp)

@@ -2,13 +2,61 @@
 
 Each helper raises a :class:`ValueError` whose message names the argument, says what was
 wrong and what is expected, so that a student who passes the wrong thing learns how to fix it.
+
+Finiteness is checked once per public call and cheaply: one sum over the values (NaN and inf
+propagate into it), and the element-wise scan only when that sum is not finite -- to name the
+culprit, or to find that the values were finite after all and only their sum overflowed. A public
+function that hands already validated tensors (or values computed from them) to other public
+functions runs them inside :func:`validated_inputs`, where :func:`check_tensor` keeps its shape and
+dtype checks but skips the finiteness scan (a model checks its images once, not again in its backbone
+and its aggregator; SALAD checks its inputs once, not again in ``salad_aggregate`` and ``sinkhorn``).
 """
 from __future__ import annotations
 
-from typing import Sequence
+import contextlib
+import threading
+from typing import Iterator, Sequence
 
 import numpy as np
 import torch
+
+_STATE = threading.local()   # ``depth``: how many validated public calls enclose the current code
+
+
+@contextlib.contextmanager
+def validated_inputs() -> Iterator[None]:
+    """Run the body of a public call whose tensor inputs were checked: nested :func:`check_tensor` calls
+    skip the finiteness scan (shapes and dtypes are still checked)."""
+    depth = getattr(_STATE, "depth", 0)
+    _STATE.depth = depth + 1
+    try:
+        yield
+    finally:
+        _STATE.depth = depth
+
+
+def _inputs_validated() -> bool:
+    return getattr(_STATE, "depth", 0) > 0
+
+
+def tensor_is_finite(x: torch.Tensor) -> bool:
+    """True iff every value of the floating tensor ``x`` is finite: one reduction, and the element-wise
+    scan only when the sum is not finite (NaN/inf inside, or finite values whose sum overflows)."""
+    with torch.no_grad():
+        x = x.detach()
+        # low-precision values are summed in float32, whose range their sum cannot overflow as easily
+        total = x.sum(dtype=torch.float32) if x.element_size() < 4 else x.sum()
+        if bool(torch.isfinite(total)):
+            return True
+        return bool(torch.isfinite(x).all())
+
+
+def array_is_finite(arr: np.ndarray) -> bool:
+    """:func:`tensor_is_finite` for a numpy float array."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(arr.sum()):
+            return True
+    return bool(np.isfinite(arr).all())
 
 
 def as_float_matrix(x, name: str, *, dim: int | None = None, allow_empty: bool = False) -> np.ndarray:
@@ -35,7 +83,7 @@ def as_float_matrix(x, name: str, *, dim: int | None = None, allow_empty: bool =
     if dim is not None and arr.shape[1] != dim:
         raise ValueError(f"{name} must have {dim} columns, got shape {tuple(arr.shape)}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
-    if not np.isfinite(arr).all():
+    if not array_is_finite(arr):
         bad = int((~np.isfinite(arr)).any(axis=1).sum())
         raise ValueError(f"{name} contains NaN or inf in {bad} row(s); clean or drop them first")
     return arr
@@ -53,7 +101,7 @@ def as_utm(x, name: str, *, allow_empty: bool = False) -> np.ndarray:
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"{name} must hold numbers, got dtype {arr.dtype}")
     arr = np.ascontiguousarray(arr, dtype=np.float64)
-    if not np.isfinite(arr).all():
+    if not array_is_finite(arr):
         raise ValueError(f"{name} contains NaN or inf coordinates; every image needs a valid geotag")
     return arr
 
@@ -85,7 +133,11 @@ def check_int(value, name: str, *, minimum: int = 1, maximum: int | None = None)
 
 
 def check_tensor(x, name: str, *, ndim: int | Sequence[int] | None = None, finite: bool = True) -> torch.Tensor:
-    """Validate a floating torch tensor (dimensions and finiteness) and return it."""
+    """Validate a floating torch tensor (dimensions and finiteness) and return it.
+
+    The finiteness check is one reduction (:func:`tensor_is_finite`) and is skipped inside
+    :func:`validated_inputs`, where the caller has checked the values this tensor comes from.
+    """
     if not isinstance(x, torch.Tensor):
         raise ValueError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if not torch.is_floating_point(x):
@@ -94,7 +146,7 @@ def check_tensor(x, name: str, *, ndim: int | Sequence[int] | None = None, finit
         allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if x.ndim not in allowed:
             raise ValueError(f"{name} must have {' or '.join(map(str, allowed))} dimensions, got shape {tuple(x.shape)}")
-    if finite and not torch.isfinite(x).all():
+    if finite and x.numel() and not _inputs_validated() and not tensor_is_finite(x):
         raise ValueError(f"{name} contains NaN or inf")
     return x
 

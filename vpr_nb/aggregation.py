@@ -22,11 +22,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ._checks import as_float_matrix, check_int, check_positive, check_tensor
+from ._checks import (_inputs_validated, as_float_matrix, check_int, check_positive, check_tensor, tensor_is_finite,
+                      validated_inputs)
+from ._threads import single_threaded_call
 
-def _check_feature_map(x: torch.Tensor, name: str, channels: int | None) -> torch.Tensor:
-    """Validate a non-empty floating ``[B, C, H, W]`` map whose ``C`` equals ``channels`` (if given)."""
-    check_tensor(x, name, ndim=4)
+def _check_feature_map(x: torch.Tensor, name: str, channels: int | None, finite: bool = True) -> torch.Tensor:
+    """Validate a non-empty floating ``[B, C, H, W]`` map whose ``C`` equals ``channels`` (if given);
+    ``finite=False`` leaves the NaN/inf check to the caller."""
+    check_tensor(x, name, ndim=4, finite=finite)
     if x.shape[0] == 0 or x.shape[2] == 0 or x.shape[3] == 0:
         raise ValueError(f"{name} is empty (shape {tuple(x.shape)}): it needs at least one image and one position")
     if channels is not None and x.shape[1] != channels:
@@ -129,9 +132,12 @@ class NetVLAD(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x``: ``[B, D, H, W]`` feature map → L2-normalised ``[B, K·D]`` NetVLAD descriptor."""
-        _check_feature_map(x, "x", self.dim)
-        if self.normalize_input:
-            x = F.normalize(x, p=2, dim=1)
+        _check_feature_map(x, "x", self.dim, finite=not self.normalize_input)
+        if self.normalize_input:   # F.normalize(x, dim=1), whose per-position norms also tell whether x is finite
+            norm = x.norm(2, 1, keepdim=True)                                # [B, 1, H, W]
+            if not (_inputs_validated() or tensor_is_finite(norm)):
+                check_tensor(x, "x")   # raises on NaN/inf (finite values whose squares overflow pass)
+            x = x / norm.clamp_min(1e-12).expand_as(x)
         assign = F.softmax(self.conv(x).flatten(2), dim=1)                  # [B, K, N]
         weighted_sum = torch.bmm(assign, x.flatten(2).transpose(1, 2))      # [B, K, D]: Σ_i a_k x_i
         mass = assign.sum(dim=2, keepdim=True)                              # [B, K, 1]: Σ_i a_k
@@ -139,6 +145,7 @@ class NetVLAD(nn.Module):
         vlad = F.normalize(vlad, p=2, dim=2).flatten(1)
         return F.normalize(vlad, p=2, dim=1)
 
+    @single_threaded_call   # numpy products on one BLAS thread (vpr_nb._threads)
     def init_from_clusters(self, centroids, descriptors) -> None:
         """Initialise the layer from k-means ``centroids`` ``[K, D]`` and sample ``descriptors`` ``[N, D]``.
 
@@ -231,6 +238,7 @@ def sample_local_descriptors(feature_maps: torch.Tensor, per_image: int, seed: i
     return picked.cpu().numpy()
 
 
+@single_threaded_call   # faiss's BLAS and OpenMP loops on one thread (vpr_nb._threads)
 def kmeans_centroids(descriptors, num_clusters: int, niter: int = 100, seed: int = 0) -> np.ndarray:
     """k-means centroids ``[num_clusters, D]`` (float32) of ``descriptors`` ``[N, D]`` with ``faiss.Kmeans``.
 
@@ -310,11 +318,13 @@ def salad_aggregate(local_features: torch.Tensor, scores: torch.Tensor, token: t
     check_tensor(local_features, "local_features", ndim=3)
     check_tensor(token, "token", ndim=2)
     check_tensor(scores, "scores", ndim=3)
+    dustbin = _as_scalar_tensor(dustbin, "dustbin")
     batch, _, n = local_features.shape
     if scores.shape[0] != batch or scores.shape[2] != n or token.shape[0] != batch:
         raise ValueError(f"local_features {tuple(local_features.shape)}, scores {tuple(scores.shape)} and token "
                          f"{tuple(token.shape)} must share the batch size B (and n for the first two)")
-    p = torch.exp(sinkhorn(scores, dustbin, num_iters))[:, :-1, :]               # [B, m, n]
+    with validated_inputs():    # sinkhorn gets the scores and dustbin checked above
+        p = torch.exp(sinkhorn(scores, dustbin, num_iters))[:, :-1, :]           # [B, m, n]
     v = torch.bmm(local_features, p.transpose(1, 2).to(local_features.dtype))     # [B, l, m]
     v = F.normalize(v, p=2, dim=1).flatten(1)
     return F.normalize(torch.cat([F.normalize(token, p=2, dim=-1), v], dim=-1), p=2, dim=-1)
@@ -376,7 +386,8 @@ class SALAD(nn.Module):
                              f"features {tuple(features.shape)}, got {tuple(token.shape)}")
         f = self.cluster_features(features).flatten(2)                              # [B, l, n]
         s = self.score(features).flatten(2)                                          # [B, m, n]
-        return salad_aggregate(f, s, self.token_features(token), self.dust_bin, 3)
+        with validated_inputs():    # f, s and the token come from the inputs checked above
+            return salad_aggregate(f, s, self.token_features(token), self.dust_bin, 3)
 
     def standardise_inputs(self, mean, std) -> None:
         """Fold ``x -> (x - mean) / std`` (per channel) into the first 1×1 conv of the score and cluster-feature

@@ -24,6 +24,7 @@ import faiss
 import numpy as np
 import torch
 from ._checks import as_float_matrix, check_int
+from ._threads import single_threaded_call
 from .split import Split, check_split, positives_within
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -48,6 +49,7 @@ def _is_half(x) -> bool:
     return dtype in (torch.bfloat16, torch.float16) or dtype == np.float16
 
 
+@single_threaded_call   # faiss's BLAS and OpenMP loops on one thread (vpr_nb._threads)
 def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Exact k-nearest-neighbour search of each query descriptor among the database descriptors.
 

@@ -54,13 +54,15 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
 from vpr_nb._checks import as_float_matrix, as_utm, check_geo_descriptors, check_int, check_positive
+from vpr_nb._threads import single_threaded, single_threaded_call
 
 _PAIR_MODES = ("query-db", "all")
 _METHODS = ("gaussian", "empirical")
 _CHUNK_FLOATS = 1 << 17  # floats per temporary (512 KiB, cache-sized) in the chunked loops
 _DESC_CHUNK_FLOATS = 1 << 18  # floats per gathered descriptor block (1 MiB)
-_GRAM_CHUNK_PAIRS = 4096  # pairs per Gram-matrix lookup in _pair_descriptor_distances
-_GRAM_MAX_WORK = 12  # Gram entries (symmetric: half) per pair above which a chunk uses the difference formula
+_GRAM_CHUNK_PAIRS = 8192  # pairs per Gram-matrix lookup in _pair_descriptor_distances
+_GRAM_MAX_WORK = 24  # Gram entries (symmetric: half) per pair above which a chunk uses the difference formula
+                     # (a gathered-difference chunk costs about as much as a Gram matrix of ~35 entries per pair)
 _CANCEL_FRACTION = np.float32(1 / 32)  # d^2 < (|a|^2 + |b|^2) * this: recompute from the difference
 
 
@@ -223,12 +225,20 @@ def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: n
     ``(|a|^2 + |b|^2) / 32``, i.e. near-duplicate descriptors -- and in chunks whose pairs touch too many
     distinct images, the distance is computed from the difference ``a[i] - b[j]`` instead. Both agree with
     the difference formula to float32 rounding (for unit-norm descriptors: at most about 3e-6, just above
-    the cancellation threshold; the tests require 1e-5).
+    the cancellation threshold; the tests require 1e-5). The products run on one BLAS thread
+    (:func:`vpr_nb._threads.single_threaded`): they are small, and extra threads stall on a busy machine.
     """
-    same = a is b
     out = np.empty(len(i), dtype=np.float32)
     if len(i) == 0:
         return out
+    with single_threaded():
+        _gram_distances_sq(a, b, i, j, out)
+    return np.sqrt(out, out=out)
+
+
+def _gram_distances_sq(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray, out: np.ndarray) -> None:
+    """The chunk loop of :func:`_pair_descriptor_distances`: squared distances into ``out``."""
+    same = a is b
     na = np.einsum("ij,ij->i", a, a)
     nb = na if same else np.einsum("ij,ij->i", b, b)
     pos_a = np.empty(len(a), dtype=np.intp)
@@ -249,13 +259,12 @@ def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: n
             continue
         if same:
             x = a[u]
-            gram, ncol, norm_a = x @ x.T, len(u), na[u]
-            norm_b = norm_a
+            gram, ncol = x @ x.T, len(u)
         else:
-            gram, ncol, norm_a, norm_b = a[ua] @ b[ub].T, len(ub), na[ua], nb[ub]
+            gram, ncol = a[ua] @ b[ub].T, len(ub)
         ii, jj = pos_a[ic], pos_b[jc]
-        scale = norm_a[ii]
-        scale += norm_b[jj]
+        scale = na[ic]
+        scale += nb[jc]
         flat = ii * ncol
         flat += jj
         d2 = gram.ravel()[flat]
@@ -265,21 +274,47 @@ def _pair_descriptor_distances(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: n
         if near.any():
             d2[near] = _direct_distances_sq(a, b, ic[near], jc[near])
         np.maximum(d2, 0.0, out=out[s:s + k])
-    return np.sqrt(out, out=out)
 
 
 def _bin_index(geo: np.ndarray | float, bin_width: float, num_bins: int) -> np.ndarray:
     """Bin of each geographic distance (the last bin is closed on the right), ``floor(geo / w)``
-    capped at ``num_bins - 1``; arrays are done in blocks (no whole-array float temporary)."""
+    capped at ``num_bins - 1``; arrays are done in blocks (no whole-array float temporary) into the
+    smallest integer type that holds ``num_bins`` (one byte per pair for up to 127 bins)."""
     geo = np.asarray(geo)
     if geo.ndim == 0:
         return np.minimum(np.floor(geo / bin_width).astype(np.int64), num_bins - 1)
-    b = np.empty(geo.shape, dtype=np.int64)
+    dtype = np.int8 if num_bins <= 127 else np.int16 if num_bins <= 32767 else np.int64
+    b = np.empty(geo.shape, dtype=dtype)
     for s in range(0, len(geo), _CHUNK_FLOATS):
         t = geo[s:s + _CHUNK_FLOATS] / bin_width
         np.floor(t, out=t)
+        np.minimum(t, num_bins - 1, out=t)
         b[s:s + _CHUNK_FLOATS] = t
-    return np.minimum(b, num_bins - 1, out=b)
+    return b
+
+
+def _bin_moments(b: np.ndarray, values: np.ndarray, num_bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-bin count, mean and population std of ``values``, in blocks (no whole-array temporary).
+
+    The sums are accumulated pair after pair in float64 (``np.add.at``), as one ``np.bincount`` over the
+    whole arrays would: the same bits, without its three whole-array float64/intp copies.
+    """
+    count = np.zeros(num_bins, dtype=np.int64)
+    total = np.zeros(num_bins)
+    for s in range(0, len(b), _CHUNK_FLOATS):
+        bb = b[s:s + _CHUNK_FLOATS]
+        count += np.bincount(bb, minlength=num_bins)
+        np.add.at(total, bb, values[s:s + _CHUNK_FLOATS].astype(np.float64))
+    squares = np.zeros(num_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = total / count
+        for s in range(0, len(b), _CHUNK_FLOATS):
+            bb = b[s:s + _CHUNK_FLOATS]
+            dev = values[s:s + _CHUNK_FLOATS] - mean[bb]   # float64, as desc - mean[b]
+            dev *= dev
+            np.add.at(squares, bb, dev)
+        std = np.sqrt(squares / count)
+    return count, mean, std
 
 
 def _bin_value_keys(b: np.ndarray, values: np.ndarray, shift: int = 0) -> np.ndarray:
@@ -429,14 +464,7 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     b = _bin_index(geo, bin_width, num_bins)
     if not keep_pairs:
         del geo       # only the bins are needed from here on
-    count = np.bincount(b, minlength=num_bins)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.bincount(b, weights=desc, minlength=num_bins) / count
-        dev = mean[b]
-        np.subtract(desc, dev, out=dev)   # the float64 values of ``desc - mean[b]``, one temporary
-        np.square(dev, out=dev)
-        std = np.sqrt(np.bincount(b, weights=dev, minlength=num_bins) / count)
-        del dev
+    count, mean, std = _bin_moments(b, desc, num_bins)
 
     pair_geo = pair_desc = None
     if keep_pairs:   # the pairs themselves are kept: sorted (bin, value, position) keys give the permutation
@@ -584,6 +612,7 @@ def _order_stats(geo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return fraction, tau
 
 
+@single_threaded_call
 def topk_order_agreement(q_desc, db_desc, q_utm, db_utm, k: int = 10) -> OrderAgreement:
     """Are the top-k retrievals of each query sorted by geographic distance?
 

@@ -18,6 +18,7 @@ import numpy as np
 from ._checks import check_geo_descriptors, check_int, check_positive
 from .samplers._common import _as_rng, _dist
 from .split import positives_within
+from ._threads import single_threaded_call
 
 
 # ----------------------------------------------------------------------------- NetVLAD triplets
@@ -57,6 +58,7 @@ def _sq_dist(q: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.maximum(np.einsum("ij,ij->i", x, x) - 2.0 * (x @ q) + q @ q, 0.0)
 
 
+@single_threaded_call   # many small products: one BLAS thread (vpr_nb._threads)
 def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius: float = 10.0,
                   neg_radius: float = 25.0, num_negatives: int = 10, num_candidates: int = 1000,
                   neg_cache: dict[int, np.ndarray] | None = None, rng, margin: float | None = None,

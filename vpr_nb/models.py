@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ._checks import check_int, check_tensor
+from ._checks import check_int, check_tensor, validated_inputs
 
 BACKBONE_NAMES = ("small_cnn", "vgg16", "dinov2")
 DINOV2_MODELS = ("dinov2_vits14", "dinov2_vitb14", "dinov2_vitl14", "dinov2_vitg14",
@@ -433,8 +433,9 @@ class VPRModel(nn.Module):
         expected channel count instead of 3.
         """
         _check_images(x, "x", getattr(self.backbone, "in_channels", 3))
-        features = self.backbone.forward_with_token(x) if self.needs_token else self.backbone(x)
-        return F.normalize(self.aggregator(features), p=2, dim=1)
+        with validated_inputs():    # the backbone and the aggregator do not scan x's values again
+            features = self.backbone.forward_with_token(x) if self.needs_token else self.backbone(x)
+            return F.normalize(self.aggregator(features), p=2, dim=1)
 
 
 def build_model(backbone: str | nn.Module = "small_cnn", aggregator: str = "gem", *,
