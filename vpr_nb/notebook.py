@@ -26,7 +26,6 @@ from pathlib import Path
 from ._checks import check_int
 
 PROFILES = ("ci", "reproduce")
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @dataclass(frozen=True)
@@ -36,16 +35,13 @@ class Setup:
     Attributes:
         profile: ``"ci"`` or ``"reproduce"``.
         seed: the seed given to :func:`vpr_nb.seed_everything`.
-        notebooks_dir: the course's ``notebooks/`` folder.
-        results_dir: ``notebooks/results``, the committed reproduce-profile results (:mod:`vpr_nb.results`).
-        fixtures_dir: ``data_fixtures``, the course backbone and the small real-format datasets.
+        results_dir: the committed reproduce-profile results (:mod:`vpr_nb.results`): the clone's
+            ``notebooks/results/``, or the copy installed with the package (:mod:`vpr_nb.package_data`).
     """
 
     profile: str
     seed: int
-    notebooks_dir: Path
     results_dir: Path
-    fixtures_dir: Path
 
 
 def check_profile(profile) -> str:
@@ -60,14 +56,13 @@ def setup(profile: str, seed: int = 0) -> Setup:
     import torch
 
     from . import seed_everything
-    from .results import RESULTS_DIR
+    from .package_data import committed_results_dir
 
     check_profile(profile)
     seed = check_int(seed, "seed", minimum=0)
     torch.set_num_threads(1)   # same floats on every machine (nbval compares them), and fast on a shared CPU
     seed_everything(seed)
-    return Setup(profile=profile, seed=seed, notebooks_dir=ROOT / "notebooks", results_dir=RESULTS_DIR,
-                 fixtures_dir=ROOT / "data_fixtures")
+    return Setup(profile=profile, seed=seed, results_dir=committed_results_dir())
 
 
 def budget(profile: str, *, ci: Mapping, reproduce: Mapping) -> dict:
@@ -92,11 +87,11 @@ def committed_experiment(notebook: str, results_dir=None) -> dict:
     (see :func:`vpr_nb.results.save`). A notebook that reuses another's setting reads it here, so the
     setting is written once; :func:`vpr_nb.results.load` with it then checks the results are current.
     """
-    from .results import RESULTS_DIR
+    from .package_data import committed_results_dir
 
     if not isinstance(notebook, str) or not notebook or "/" in notebook:
         raise ValueError(f"notebook must be a stem such as '04_netvlad', got {notebook!r}")
-    path = Path(results_dir if results_dir is not None else RESULTS_DIR) / f"{notebook}.json"
+    path = Path(results_dir if results_dir is not None else committed_results_dir()) / f"{notebook}.json"
     if not path.is_file():
         raise FileNotFoundError(f"no committed reproduce-profile results at notebooks/results/{path.name}; run "
                                 f"notebook {notebook} with PROFILE = 'reproduce' (make reproduce) and commit the file")
