@@ -306,11 +306,24 @@ def test_a_resumed_log_drops_the_rows_of_epochs_it_runs_again(tmp_path):
 
 def test_tensorboard_events_when_installed(tmp_path):
     pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    def epoch(log, e, steps):
+        for i in range(steps):
+            log.step({"epoch": e, "step": i, "loss": float(10 * e + i), "collapsed_loss": 0.5, "lr": 0.1,
+                      "seconds": 0.0})
+        log.epoch({"epoch": e, "loss": float(e), "collapsed_loss": 0.5, "mean_cosine": 0.9, "lr": 0.1,
+                   "seconds": 1.0, "val": {1: 0.5}})
     with RunLog(tmp_path) as log:
-        log.step({"epoch": 0, "step": 0, "loss": 1.0, "collapsed_loss": 0.5, "lr": 0.1, "seconds": 0.0})
-        log.epoch({"epoch": 0, "loss": 1.0, "collapsed_loss": 0.5, "mean_cosine": 0.9, "lr": 0.1, "seconds": 1.0,
-                   "val": {1: 0.5}})
+        epoch(log, 0, 2)
+        epoch(log, 1, 2)
+    with RunLog(tmp_path) as log:                         # resumed after epoch 0: epoch 1's events purged
+        epoch(log, 1, 3)
     assert log.tensorboard == tmp_path / "tensorboard" and any((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+    ea = EventAccumulator(str(tmp_path / "tensorboard"))
+    ea.Reload()
+    assert [(e.step, e.value) for e in ea.Scalars("train/loss")] == [(0, 0.0), (1, 1.0), (2, 10.0), (3, 11.0), (4, 12.0)]
+    assert [e.step for e in ea.Scalars("val/R@1")] == [1, 4]
 
 
 # ------------------------------------------------------------------------------------------ pretrain

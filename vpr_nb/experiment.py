@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from . import seed_everything
-from .atomic import atomic_write
+from .atomic import atomic_write, atomic_write_text
 from .config import SECTIONS, RunConfig, SourceConfig, build_loss, check_device, split_spec, validate
 from .datasets import (GeoSplit, ImageArray, SplitSpec, TrainingSplit, dataset_format, drop_images,
                        find_unreadable_images)
@@ -325,30 +325,32 @@ def _unreadable_text(bad: list) -> str:
 
 
 def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool = True,
-              tensorboard: bool = True) -> dict:
-    """Validate ``cfg`` and build its model (before anything is read or written), then take ``out`` (an
-    :class:`~vpr_nb.run_folder.OutputFolder`: locked for the whole run, refused when it holds another run
-    unless ``resume``), load the data, train, select on the validation split, and test.
+              folder: OutputFolder | None = None, tensorboard: bool = True, summary: bool | None = None) -> dict:
+    """Validate ``cfg`` and build its model (before anything is read or written), then load the data, train,
+    select on the validation split, and test. ``out`` receives ``history.json``, ``results.json``,
+    ``checkpoints/`` and ``unreadable_images.txt`` (images left out), each written atomically.
 
-    Prints :func:`config_summary`. With ``out``: ``config.json``, ``history.json``, ``results.json``,
-    ``steps.csv`` / ``epochs.csv`` (and TensorBoard events when installed, :class:`~vpr_nb.run_log.RunLog`),
-    ``checkpoints/`` and ``unreadable_images.txt`` (images left out), every file written atomically. A run
-    that fails before its first checkpoint removes what it wrote, so the folder can be used again.
-    Under ``torch.distributed`` only rank 0 takes and writes the folder."""
+    ``folder`` (the ``train`` command's, an :class:`~vpr_nb.run_folder.OutputFolder` of ``out``) makes it a
+    run of the command: the folder is taken once the model is built (locked for the whole run, refused when
+    it holds another run unless ``resume``), ``config.json`` (the full config), ``steps.csv`` /
+    ``epochs.csv`` (and TensorBoard events when installed, :class:`~vpr_nb.run_log.RunLog`) are written
+    too, and a run that fails before its first checkpoint removes what it wrote, so the folder can be used
+    again. ``summary`` (default: ``progress``) prints :func:`config_summary`. Under ``torch.distributed``
+    only rank 0 takes and writes the folder."""
     validate(cfg)
     out = None if out is None else Path(out)
     rank = distributed_rank()[0]
     seed_everything(cfg.train.seed)
     model = build_checked(cfg)             # the model is built and run before any data loads
-    folder = OutputFolder(out, resume=resume) if out is not None and rank == 0 else None
+    folder = folder if rank == 0 else None
     with folder if folder is not None else contextlib.nullcontext():
         return _train_in(cfg, model, out, folder, resume=resume, progress=progress, rank=rank,
-                         tensorboard=tensorboard)
+                         tensorboard=tensorboard, summary=progress if summary is None else summary)
 
 
 def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | None, *, resume: bool,
-              progress: bool, rank: int, tensorboard: bool) -> dict:
-    """:func:`train_run` once the model is built and ``folder`` (rank 0 with ``out``) is held."""
+              progress: bool, rank: int, tensorboard: bool, summary: bool) -> dict:
+    """:func:`train_run` once the model is built and ``folder`` (if any) is held."""
     world = synthetic_world(cfg.data) if cfg.data.format == SYNTHETIC else None
     bad: list = []
     train_split = load_split(cfg, "train", report=bad, synthetic=world)
@@ -370,14 +372,15 @@ def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | No
     conv = convention(cfg, test_split)
     val_data, test_data = split_spec(cfg.data, "val").describe(), split_spec(cfg.data, "test").describe()
     log = RunLog(out, tensorboard=tensorboard) if folder is not None else None
-    if rank == 0:
+    if rank == 0 and summary:
         print("\n".join(config_summary(cfg, model, per_epoch, out, conv, log.note if log else None)), flush=True)
+    writes = out is not None and rank == 0
     if folder is not None:                           # the data is there: the run starts writing its folder
         folder.write_text("config.json", json.dumps(cfg.to_dict(), indent=1))
-        if bad:
-            folder.write_text("unreadable_images.txt", _unreadable_text(bad))
-        for name in log.files() + ["checkpoints"]:
+        for name in log.files() + ["checkpoints", "unreadable_images.txt"]:
             folder.record(name)
+    if writes and bad:
+        atomic_write_text(out / "unreadable_images.txt", _unreadable_text(bad), errors="surrogateescape")
     try:
         history = train(model, source, val_split, cfg.train, checkpoint_dir=None if out is None else out / "checkpoints",
                         resume=resume, progress=progress, log=log)
@@ -390,9 +393,9 @@ def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | No
                "test": {str(k): v for k, v in test.items()}, "steps_per_epoch": per_epoch,
                "optimizer_steps": total, "val": val_data, "test_data": test_data, "recall_convention": conv,
                "unreadable_images": len(bad)}
-    if folder is not None:
-        folder.write_text("history.json", json.dumps(history.to_dict(), indent=1))
-        folder.write_text("results.json", json.dumps(results, indent=1))
+    if writes:
+        atomic_write_text(out / "history.json", json.dumps(history.to_dict(), indent=1))
+        atomic_write_text(out / "results.json", json.dumps(results, indent=1))
     return results
 
 

@@ -35,7 +35,7 @@ import torch
 
 from .config import PRESETS as PRESET_DEVIATIONS
 from .config import RunConfig, resolve, validate
-from .experiment import CLI_ERRORS, read_run_config, train_run
+from .experiment import CLI_ERRORS, OutputFolder, read_run_config, train_run
 
 # every preset resolved (all fields, for reading and printing); the presets themselves, which hold only
 # their deviations from the defaults, are vpr_nb.config.PRESETS
@@ -98,9 +98,10 @@ def main(argv=None) -> int:
         backend = "nccl" if torch.cuda.is_available() and cfg.train.device != "cpu" else "gloo"
         torch.distributed.init_process_group(backend)
     rank = torch.distributed.get_rank() if distributed else 0
+    folder = OutputFolder(args.out, resume=args.resume) if args.out is not None and rank == 0 else None
     try:
-        results = train_run(cfg, args.out, resume=args.resume, progress=not args.no_progress,
-                            tensorboard=not args.no_tensorboard)
+        results = train_run(cfg, args.out, resume=args.resume, progress=not args.no_progress, folder=folder,
+                            tensorboard=not args.no_tensorboard, summary=rank == 0)
     except CLI_ERRORS as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
