@@ -83,6 +83,23 @@ def test_a_diverging_run_names_the_step_and_the_lr(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_a_model_that_gives_nan_before_training_is_named():
+    from vpr_nb.synthetic import make_dataset
+    from vpr_nb.training import TrainConfig, TripletSource, train
+
+    ds = make_dataset("city", 0, "tiny", blocks=[5, 2], image_size=[16, 24], queries_per_place=1.0)
+    model = E.build(C.resolve("synthetic-city-triplet", [NET]))
+    with torch.no_grad():
+        next(model.parameters()).fill_(float("nan"))          # e.g. a broken backbone checkpoint
+    with pytest.raises(ValueError, match="the model's weights hold NaN or inf at the start of epoch 0"):
+        train(model, TripletSource(ds.train, num_candidates=50), ds.val, TrainConfig(epochs=1), progress=False)
+    model = E.build(C.resolve("synthetic-city-triplet", [NET]))
+    with torch.no_grad():
+        next(model.parameters()).mul_(1e37)                    # finite weights whose activations overflow
+    with pytest.raises(ValueError, match="before the first optimiser step: the untrained model gives NaN/inf"):
+        train(model, TripletSource(ds.train, num_candidates=50), ds.val, TrainConfig(epochs=1), progress=False)
+
+
 @pytest.mark.parametrize("how", ["oserror", "dev-full"])
 def test_a_full_disk_while_writing_a_checkpoint(tmp_path, capsys, monkeypatch, how):
     """One line naming the checkpoint and the fix; no temporary file; the folder left reusable."""
@@ -203,9 +220,9 @@ def test_evaluate_a_truncated_checkpoint(tmp_path, capsys, keep):
     data = ck.read_bytes()
     n = int(len(data) * keep) if isinstance(keep, float) else keep % len(data) if keep < 0 else keep
     (tmp_path / "cut.pt").write_bytes(data[:n])
-    needle = "holds pickled Python objects" if n == 1 else "is not a readable torch checkpoint"
     fails(evaluate_main, ["--preset", "synthetic-city-triplet", "--checkpoint", str(tmp_path / "cut.pt"),
-                          "--set", NET, "--out", str(tmp_path / "ev")], capsys, str(tmp_path / "cut.pt"), needle)
+                          "--set", NET, "--out", str(tmp_path / "ev")], capsys, str(tmp_path / "cut.pt"),
+          "is not a readable torch checkpoint", "truncated, damaged or of another format")
     with pytest.raises(ValueError):
         load_checkpoint(tmp_path / "cut.pt")
 

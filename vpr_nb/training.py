@@ -418,6 +418,12 @@ def load_checkpoint(path) -> dict:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
+        with open(path, "rb") as f:
+            head = f.read(4)
+        if head != b"PK\x03\x04" and head[:1] != b"\x80":      # neither torch's zip archive nor its legacy pickle
+            raise ValueError(f"{path} is not a readable torch checkpoint ({path.stat().st_size} bytes, not a torch "
+                             f"archive): the file is truncated, damaged or of another format; restore it, or use "
+                             f"another checkpoint of the run (checkpoints/best.pt or last.pt)") from None
         first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
         raise ValueError(
             f"{path} is not a checkpoint of plain tensors and containers (as vpr_nb writes): it holds pickled "
@@ -621,6 +627,9 @@ def train_epoch(net: torch.nn.Module, source, epoch: int, cfg: TrainConfig, opt,
     total, collapsed, steps = 0.0, 0.0, 0
     params, t0 = [p for g in opt.param_groups for p in g["params"]], time.perf_counter()
     lr = opt.param_groups[0]["lr"]
+    if not _finite_weights(params):
+        raise ValueError(f"the model's weights hold NaN or inf at the start of epoch {epoch}, before any step of "
+                         f"it: check the weights it started from (the backbone's file, a resumed checkpoint)")
     try:
         with setup.autocast():
             for loss in source.steps(net, rng, shard=shard, device=setup.device):
@@ -638,7 +647,12 @@ def train_epoch(net: torch.nn.Module, source, epoch: int, cfg: TrainConfig, opt,
                 if log is not None:
                     log.step({"epoch": epoch, "step": steps - 1, "loss": logged, "collapsed_loss": last, "lr": lr,
                               "seconds": time.perf_counter() - t0})
-    except NotFinite as exc:
+    except ValueError as exc:             # NotFinite, or a check of the model's own layers on its activations
+        if not isinstance(exc, NotFinite) and "NaN or inf" not in str(exc):
+            raise
+        if epoch == 0 and steps == 0:
+            raise ValueError(f"{exc} before the first optimiser step: the untrained model gives NaN/inf on the "
+                             f"training images; check the images and the weights it started from") from None
         raise ValueError(f"training diverged: {exc} at optimiser step {steps + 1} of epoch {epoch} (lr {lr:g}); "
                          f"lower train.lr, e.g. --set train.lr={lr / 10:g}") from None
     if steps == 0:
