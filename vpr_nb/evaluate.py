@@ -10,8 +10,8 @@ e.g. MSLS-val for an MSLS run, so a folder holding only cph and sf suffices). ``
 ``retrieval_grid.png``, each written atomically, into ``--out``, which is locked while it is written (the
 lock of :mod:`vpr_nb.run_folder`: a folder a ``train`` or ``evaluate`` run is writing is refused). The
 config, the device and the checkpoint (readable, and weights of the configured model) are checked before
-``--out`` is touched; errors are one ``error: ...`` line and exit status 2. The run logic is :func:`vpr_nb.experiment.evaluate_run`; this module only parses
-the command line.
+``--out`` is touched; errors are one ``error: ...`` line and exit status 2. The run logic is
+:func:`vpr_nb.experiment.evaluate_run`; this module only parses the command line.
 """
 from __future__ import annotations
 
