@@ -16,6 +16,7 @@ from torch import nn
 
 from vpr_nb import config as C
 from vpr_nb import experiment as E
+from vpr_nb.run_folder import FolderLock
 from vpr_nb.train import PRESETS, main, resolve_config
 
 FIX = Path(__file__).resolve().parents[1] / "data_fixtures"
@@ -223,9 +224,9 @@ def test_dwt_pitts30k_end_to_end_on_fixtures(tmp_path):
     assert main(["--preset", "dwt-pitts30k", "--out", str(out)] + _pitts_sets()) == 2
     assert main(["--resume", "--out", str(out), "--no-progress"]) == 0
     assert main(["--resume", "--preset", "dwt-pitts30k", "--set", "train.lr=1", "--out", str(out)]) == 2
-    (out / ".lock").write_text(f"{os.getppid()}\n")                 # a live process holds the folder
-    assert main(["--resume", "--out", str(out), "--no-progress"]) == 2
-    (out / ".lock").write_text("999999999\n")                      # a dead one: taken over
+    with FolderLock(out):                                          # another run holds the folder
+        assert main(["--resume", "--out", str(out), "--no-progress"]) == 2
+    (out / ".lock").write_text("999999999 host 2020-01-01T00:00:00\n")   # left by a dead one: taken over
     assert main(["--resume", "--out", str(out), "--no-progress"]) == 0
     # pitts250k names
     root = tmp_path / "p250"

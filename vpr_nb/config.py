@@ -20,11 +20,13 @@ import typing
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+import torch
+
 from . import losses as L
 from .aggregation import AGGREGATOR_NAMES, CHANNEL_ARGUMENTS
 from .datasets.registry import REGISTRY, SYNTHETIC, SplitSpec, dataset_format, role_spec
 from .losses import LOSSES, TRIPLET_LOSSES
-from .models import BACKBONE_NAMES
+from .models import BACKBONE_NAMES, SmallCNN, VGG16Backbone, load_dinov2
 from .synthetic import make_config
 from .training import SCHEDULERS, OPTIMIZERS, TrainConfig  # noqa: F401 (re-exported choices)
 from .typed_parsing import parse_value
@@ -384,12 +386,45 @@ def _validate_training_data(d: DataConfig, s: SourceConfig) -> None:
         raise need_root
 
 
+# what model.backbone names build, for checking model.backbone_kwargs against its signature (the names of
+# vpr_nb.models.build_model; tests/test_errors_cli.py checks that the two agree)
+BACKBONE_BUILDERS = {"small_cnn": SmallCNN, "vgg16": VGG16Backbone, "dinov2": load_dinov2}
+
+
+def check_backbone_kwargs(m: ModelConfig) -> None:
+    """``model.backbone_kwargs`` holds only arguments of the backbone's constructor (before anything is built)."""
+    build = BACKBONE_BUILDERS.get(m.backbone)
+    if build is None:
+        return                                # an unknown backbone name is refused by the choices check
+    params = inspect.signature(build).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return
+    unknown = sorted(set(m.backbone_kwargs) - set(params))
+    if unknown:
+        raise ValueError(f"model.backbone_kwargs: {m.backbone} does not take {', '.join(map(repr, unknown))}; "
+                         f"its options are {', '.join(params)} (e.g. --set model.backbone_kwargs='{{\"width\": 8}}')")
+
+
+def check_device(name: str, where: str = "train.device") -> None:
+    """A CUDA device only where CUDA is available (and that many GPUs exist)."""
+    if not isinstance(name, str) or not name.startswith("cuda"):
+        return
+    if not torch.cuda.is_available():
+        raise ValueError(f"{where}={name}: CUDA is not available on this machine; use {where}=auto (CUDA when "
+                         f"present, else CPU) or {where}=cpu")
+    index = name.partition(":")[2]
+    if index and (not index.isdigit() or int(index) >= torch.cuda.device_count()):
+        raise ValueError(f"{where}={name}: this machine has {torch.cuda.device_count()} CUDA device(s), "
+                         f"cuda:0 to cuda:{torch.cuda.device_count() - 1}")
+
+
 def validate(cfg: RunConfig, *, for_training: bool = True) -> None:
     """Check the whole config without reading any data; ValueError says what and how to fix."""
     if not isinstance(cfg, RunConfig):
         raise ValueError(f"cfg must be a RunConfig (vpr_nb.config.resolve), got {type(cfg).__name__}")
     _validate_fields(cfg)
     m, d = cfg.model, cfg.data
+    check_backbone_kwargs(m)
     if CHANNEL_ARGUMENTS[m.aggregator] in m.aggregator_kwargs:
         raise ValueError(f"model.aggregator_kwargs must not set {CHANNEL_ARGUMENTS[m.aggregator]!r}: the backbone's "
                          f"channel count is passed to {m.aggregator} by build_model")
@@ -399,9 +434,11 @@ def validate(cfg: RunConfig, *, for_training: bool = True) -> None:
         except TypeError as exc:
             raise ValueError(f"data.overrides: {exc}") from None
     if for_training:
+        check_device(cfg.train.device)
         _validate_training_data(d, cfg.source)
 
 
 __all__ = ["DataConfig", "ModelConfig", "SourceConfig", "EvalConfig", "RunConfig", "PRESETS", "SECTIONS",
            "resolve", "with_overrides", "validate", "split_spec", "check_val_test", "SplitSpec", "split_override",
-           "parse_value", "LOSSES", "TRIPLET_LOSSES", "build_loss"]
+           "parse_value", "LOSSES", "TRIPLET_LOSSES", "build_loss", "check_device", "check_backbone_kwargs",
+           "BACKBONE_BUILDERS"]

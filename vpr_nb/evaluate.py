@@ -7,8 +7,11 @@ e.g. MSLS-val for an MSLS run, so a folder holding only cph and sf suffices). ``
 --set data.root=/path`` evaluates on another dataset (the test data then follows the new format unless
 ``data.test_*`` are set too). Writes ``recalls.json`` (Recall@N, the Recall@N convention used and
 ``num_queries`` = the queries it divides by), optionally ``predictions.csv`` (``--predictions``) and
-``retrieval_grid.png``. The run logic is :func:`vpr_nb.experiment.evaluate_run`; this module only parses
-the command line.
+``retrieval_grid.png``, each written atomically, into ``--out``, which is locked while it is written (the
+lock of :mod:`vpr_nb.run_folder`: a folder a ``train`` or ``evaluate`` run is writing is refused). The
+config, the device and the checkpoint (readable, and weights of the configured model) are checked before
+``--out`` is touched; errors are one ``error: ...`` line and exit status 2. The run logic is
+:func:`vpr_nb.experiment.evaluate_run`; this module only parses the command line.
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ import sys
 from pathlib import Path
 
 from .config import RunConfig, resolve, split_override, with_overrides
-from .experiment import evaluate_run
+from .experiment import CLI_ERRORS, evaluate_run, read_run_config
 
 
 def run_config(run_dir: Path, overrides=()) -> RunConfig:
@@ -27,7 +30,7 @@ def run_config(run_dir: Path, overrides=()) -> RunConfig:
     cfg_path = Path(run_dir) / "config.json"
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{cfg_path} not found: --run must be an output folder of vpr_nb.train")
-    saved = RunConfig.from_dict(json.loads(cfg_path.read_text()))
+    saved = read_run_config(cfg_path)
     keys = {split_override(o)[:2] for o in overrides}
     extra = []
     if keys & {("data", "format"), ("data", "root")} and not keys & {("data", "test_format"), ("data", "test_root")}:
@@ -54,7 +57,7 @@ def main(argv=None) -> int:
         else:
             ap.error("give --run DIR, or --preset NAME with --checkpoint FILE")
         result = evaluate_run(cfg, checkpoint, args.out, predictions=args.predictions, device=args.device)
-    except (ValueError, FileNotFoundError) as e:
+    except CLI_ERRORS as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(json.dumps(result["recall"], indent=1))

@@ -11,14 +11,20 @@
 - :func:`build_source`: the batch source of ``cfg.source`` on the training split (triplets, or place batches
   from the split's place pool: random places, CliqueMining, or CliqueMining's GSV-Cities + clique batches
   with one loss per half) and :func:`steps_per_epoch`;
-- :class:`OutputFolder`: the ``--out`` folder, refused when in use or not empty, locked while written.
+- :func:`train_run` / :func:`evaluate_run` take the ``--out`` folder (:class:`vpr_nb.run_folder.OutputFolder`:
+  an OS lock held for the whole run, refused when another run holds it or it holds another run) only
+  after everything that can be checked without data (config, device, model, checkpoint) was, write every
+  file atomically (:mod:`vpr_nb.atomic`), log every step and epoch (:class:`vpr_nb.run_log.RunLog`) and
+  print a short summary (:func:`config_summary`); :func:`read_run_config` reads a run's ``config.json``.
 
 Every Recall@N takes its positives from the split (``split.positives()``, per city where the split has
 cities) under the split's convention unless ``eval.recall`` says otherwise (:func:`convention`).
 """
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import math
 import os
@@ -28,7 +34,8 @@ import numpy as np
 import torch
 
 from . import seed_everything
-from .config import RunConfig, SourceConfig, build_loss, split_spec, validate
+from .atomic import atomic_write, atomic_write_text
+from .config import SECTIONS, RunConfig, SourceConfig, build_loss, check_device, split_spec, validate
 from .datasets import (GeoSplit, ImageArray, SplitSpec, TrainingSplit, dataset_format, drop_images,
                        find_unreadable_images)
 from .datasets.registry import SYNTHETIC
@@ -37,7 +44,10 @@ from .models import build_model, init_netvlad
 from .samplers import CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBatches
 from .split import PlacePool, Split, check_split
 from .synthetic import make_config, make_dataset
-from .training import PlaceBatchSource, TripletSource, distributed_rank, load_checkpoint, resolve_device, train
+from .run_folder import OutputFolder
+from .run_log import RunLog
+from .training import (PlaceBatchSource, TripletSource, distributed_rank, load_checkpoint, load_weights,
+                       resolve_device, train)
 
 
 # ================================================================================================ models
@@ -225,47 +235,82 @@ def build_source(cfg: RunConfig, train_split: Split, extra_split: Split | None =
 
 
 # ================================================================================================ runs
-class OutputFolder:
-    """The ``--out`` folder of a run: refused when it already holds files unless ``resume``; locked while
-    the run writes (``.lock`` with the process id; a lock left by a dead process is taken over)."""
+# what the commands print as one "error: ..." line (exit status 2): the library's refusals and the file
+# system's failures (a full disk, a folder without permission), each already naming the file and the fix
+CLI_ERRORS = (ValueError, FileNotFoundError, OSError)
 
-    def __init__(self, path, resume: bool = False):
-        self.path = Path(path)
-        self.resume = bool(resume)
-        self.lock = self.path / ".lock"
-        self.held = False
 
-    def check(self) -> None:
-        p = self.path
-        if p.exists() and not p.is_dir():
-            raise ValueError(f"--out {p} is a file, not a folder")
-        content = [c.name for c in p.iterdir()] if p.is_dir() else []
-        if self.lock.exists():
-            try:
-                pid = int(self.lock.read_text().split()[0])
-                os.kill(pid, 0)
-                alive = pid != os.getpid()
-            except (ValueError, IndexError, ProcessLookupError, PermissionError, OSError):
-                alive = False
-            if alive:
-                raise ValueError(f"--out {p} is in use by another run (process {pid}, {self.lock}); "
-                                 "choose another folder")
-        if content and not self.resume and [c for c in content if c != ".lock"]:
-            raise ValueError(f"--out {p} is not empty ({', '.join(sorted(content)[:4])}...): pass --resume to "
-                             f"continue the run saved there, or choose a new folder")
-        if self.resume and not (p / "config.json").is_file():
-            raise ValueError(f"--resume: {p / 'config.json'} not found; there is no run to resume in {p}")
+def read_run_config(path) -> RunConfig:
+    """The :class:`RunConfig` saved in ``path`` (a run's ``config.json``); ValueError naming the file when
+    it is not UTF-8, not JSON or not a run config, FileNotFoundError when it is missing."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: the folder holds no run of vpr_nb.train")
+    fix = "restore it, or start a new --out (the run's settings are --preset and --set)"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path} is not UTF-8 text (byte {exc.start}), so not a config.json of vpr_nb.train: "
+                         f"{fix}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc.msg}, line {exc.lineno} column {exc.colno}): {fix}") from None
+    except OSError as exc:
+        raise ValueError(f"{path} cannot be read ({exc.strerror}): {fix}") from None
+    try:
+        return RunConfig.from_dict(data)
+    except ValueError as exc:
+        raise ValueError(f"{path} is not a run config ({exc}): {fix}") from None
 
-    def acquire(self) -> None:
-        self.path.mkdir(parents=True, exist_ok=True)
-        self.check()
-        self.lock.write_text(f"{os.getpid()}\n")
-        self.held = True
 
-    def release(self) -> None:
-        if self.held and self.lock.exists():
-            self.lock.unlink()
-        self.held = False
+def deviations(cfg: RunConfig) -> dict[str, dict]:
+    """``{section: {key: value}}`` of the fields of ``cfg`` that differ from the defaults (the preset's
+    deviations and the ``--set`` overrides)."""
+    defaults = RunConfig(cfg.preset, **{name: section() for name, section in SECTIONS.items()}).to_dict()
+    mine = cfg.to_dict()
+    return {s: {k: v for k, v in mine[s].items() if v != defaults[s][k]} for s in SECTIONS
+            if any(v != defaults[s][k] for k, v in mine[s].items())}
+
+
+def _fit(line: str, width: int = 118) -> str:
+    return line if len(line) <= width else line[:width - 3] + "..."
+
+
+def config_summary(cfg: RunConfig, model=None, per_epoch: int | None = None, out=None,
+                   convention_name: str | None = None, log_note: str | None = None) -> list[str]:
+    """The run at a glance (at most 15 lines, for stdout): preset and folder, data, model, batches, steps,
+    test, the deviations from the defaults (one line per section) and the logs; ``config.json`` holds
+    the full config."""
+    d, m, s, t = cfg.data, cfg.model, cfg.source, cfg.train
+    where = {w: split_spec(d, w).describe() for w in ("train", "val", "test")}
+    world = f" (world {d.preset}/{d.size}, seed {d.seed})" if d.format == SYNTHETIC else ""
+    lines = [f"{cfg.preset} -> {out}/ (full config in config.json)" if out is not None
+             else f"{cfg.preset} (no --out: nothing is written)",
+             _fit(f"  data:   train {where['train']}, val {where['val']}, test {where['test']}{world}")]
+    if model is not None:
+        params = sum(p.numel() for p in model.parameters())
+        trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+        lines.append(f"  model:  {m.backbone} + {m.aggregator}, {model.out_dim}-D descriptors, {params:,} parameters "
+                     f"({trainable:,} trainable)")
+    else:
+        lines.append(f"  model:  {m.backbone} + {m.aggregator}")
+    if s.kind == "triplet":
+        lines.append(f"  batch:  triplets, {s.loss} loss, {s.batch_size} queries x {s.num_negatives} negatives per step")
+    else:
+        lines.append(f"  batch:  places ({s.sampler}), multi-similarity loss, {s.places_per_batch} places x "
+                     f"{s.images_per_place} images per step")
+    steps = f"{per_epoch} = {t.epochs * per_epoch} optimiser steps" if per_epoch is not None else "? steps"
+    lines.append(f"  steps:  {t.epochs} epochs x {steps}; {t.optimizer} lr {t.lr:g}, {t.scheduler} scheduler, "
+                 f"device {t.device}{', AMP' if t.amp else ''}, seed {t.seed}")
+    ns = ",".join(map(str, cfg.eval.ns or t.ns))
+    lines.append(f"  test:   Recall@{ns}" + (f", {convention_name} convention" if convention_name else ""))
+    changed = deviations(cfg)
+    if changed:
+        lines.append("  set (differs from the defaults):")
+        lines += [_fit(f"    {sec}: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in kv.items()))
+                  for sec, kv in changed.items()]
+    if out is not None:
+        lines.append("  logs:   history.json, steps.csv, epochs.csv, checkpoints/" + (f"; {log_note}" if log_note else ""))
+    return lines
 
 
 def _files(split: Split):
@@ -275,24 +320,37 @@ def _files(split: Split):
     return frozenset(map(os.path.realpath, split.db_paths)), frozenset(map(os.path.realpath, split.q_paths or []))
 
 
-def _write_unreadable(out: Path, bad: list) -> None:
-    (out / "unreadable_images.txt").write_text("".join(f"{n}\t{p}\t{e}\n" for n, p, e in bad))
+def _unreadable_text(bad: list) -> str:
+    return "".join(f"{n}\t{p}\t{e}\n" for n, p, e in bad)
 
 
 def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool = True,
-              folder: OutputFolder | None = None) -> dict:
-    """Validate ``cfg`` and build its model (before any data is read), then load the data, train, select
-    on the validation split, and test. With ``out``: ``history.json``, ``results.json``, ``checkpoints/``
-    and ``unreadable_images.txt`` (images left out) are written there; with ``folder`` (the CLI's
-    :class:`OutputFolder`) the folder is locked and ``config.json`` written once the model is built."""
+              folder: OutputFolder | None = None, tensorboard: bool = True, summary: bool | None = None) -> dict:
+    """Validate ``cfg`` and build its model (before anything is read or written), then load the data, train,
+    select on the validation split, and test. ``out`` receives ``history.json``, ``results.json``,
+    ``checkpoints/`` and ``unreadable_images.txt`` (images left out), each written atomically.
+
+    ``folder`` (the ``train`` command's, an :class:`~vpr_nb.run_folder.OutputFolder` of ``out``) makes it a
+    run of the command: the folder is taken once the model is built (locked for the whole run, refused when
+    it holds another run unless ``resume``), ``config.json`` (the full config), ``steps.csv`` /
+    ``epochs.csv`` (and TensorBoard events when installed, :class:`~vpr_nb.run_log.RunLog`) are written
+    too, and a run that fails before its first checkpoint removes what it wrote, so the folder can be used
+    again. ``summary`` (default: ``progress``) prints :func:`config_summary`. Under ``torch.distributed``
+    only rank 0 takes and writes the folder."""
     validate(cfg)
     out = None if out is None else Path(out)
     rank = distributed_rank()[0]
     seed_everything(cfg.train.seed)
     model = build_checked(cfg)             # the model is built and run before any data loads
-    if folder is not None and rank == 0:
-        folder.acquire()
-        (folder.path / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
+    folder = folder if rank == 0 else None
+    with folder if folder is not None else contextlib.nullcontext():
+        return _train_in(cfg, model, out, folder, resume=resume, progress=progress, rank=rank,
+                         tensorboard=tensorboard, summary=progress if summary is None else summary)
+
+
+def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | None, *, resume: bool,
+              progress: bool, rank: int, tensorboard: bool, summary: bool) -> dict:
+    """:func:`train_run` once the model is built and ``folder`` (if any) is held."""
     world = synthetic_world(cfg.data) if cfg.data.format == SYNTHETIC else None
     bad: list = []
     train_split = load_split(cfg, "train", report=bad, synthetic=world)
@@ -306,10 +364,6 @@ def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool 
     if cfg.source.kind == "places" and cfg.source.sampler == "clique+random":
         gsv = check_images(load_geo(SplitSpec("gsv-cities", cfg.data.gsv_root, "train"), cfg.data), cfg.data, bad)
         extra = TrainingSplit(gsv, tuple(cfg.data.image_size))
-    if out is not None and rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
-        if bad:
-            _write_unreadable(out, bad)
     if cfg.model.aggregator == "netvlad":            # NetVLAD's cluster step: k-means centroids and alpha
         init_netvlad(model, train_split.db_images, per_image=cfg.model.init_per_image, seed=cfg.train.seed,
                      max_images=cfg.model.init_max_images)
@@ -317,25 +371,36 @@ def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool 
     total = cfg.train.epochs * per_epoch
     conv = convention(cfg, test_split)
     val_data, test_data = split_spec(cfg.data, "val").describe(), split_spec(cfg.data, "test").describe()
-    if rank == 0 and progress:
-        print(f"{cfg.preset}: {cfg.train.epochs} epochs x {per_epoch} steps = {total} optimiser steps; "
-              f"val {val_data}, test {test_data}; test Recall@N convention: {conv}")
-    history = train(model, source, val_split, cfg.train,
-                    checkpoint_dir=None if out is None else out / "checkpoints", resume=resume, progress=progress)
+    log = RunLog(out, tensorboard=tensorboard) if folder is not None else None
+    if rank == 0 and summary:
+        print("\n".join(config_summary(cfg, model, per_epoch, out, conv, log.note if log else None)), flush=True)
+    writes = out is not None and rank == 0
+    if folder is not None:                           # the data is there: the run starts writing its folder
+        folder.write_text("config.json", json.dumps(cfg.to_dict(), indent=1))
+        for name in log.files() + ["checkpoints", "unreadable_images.txt"]:
+            folder.record(name)
+    if writes and bad:
+        atomic_write_text(out / "unreadable_images.txt", _unreadable_text(bad), errors="surrogateescape")
+    try:
+        history = train(model, source, val_split, cfg.train, checkpoint_dir=None if out is None else out / "checkpoints",
+                        resume=resume, progress=progress, log=log)
+    finally:
+        if log is not None:
+            log.close()
     test = evaluate_model(model, test_split, ns=cfg.eval.ns or cfg.train.ns, batch_size=cfg.eval.batch_size,
                           no_positive=conv)
     results = {"preset": cfg.preset, "best_epoch": history.best_epoch, "val_best_recall": history.best_recall,
                "test": {str(k): v for k, v in test.items()}, "steps_per_epoch": per_epoch,
                "optimizer_steps": total, "val": val_data, "test_data": test_data, "recall_convention": conv,
                "unreadable_images": len(bad)}
-    if out is not None and rank == 0:
-        (out / "history.json").write_text(json.dumps(history.to_dict(), indent=1))
-        (out / "results.json").write_text(json.dumps(results, indent=1))
+    if writes:
+        atomic_write_text(out / "history.json", json.dumps(history.to_dict(), indent=1))
+        atomic_write_text(out / "results.json", json.dumps(results, indent=1))
     return results
 
 
-def _retrieval_grid(path: Path, test: Split, idx: np.ndarray, pos: list, queries: int, top: int) -> None:
-    """``retrieval_grid.png``: the first ``queries`` queries and their top retrievals."""
+def _retrieval_grid(test: Split, idx: np.ndarray, pos: list, queries: int, top: int) -> bytes:
+    """``retrieval_grid.png`` (its bytes): the first ``queries`` queries and their top retrievals."""
     import matplotlib       # only when a figure is written: importing this module must not pick a backend
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -349,60 +414,73 @@ def _retrieval_grid(path: Path, test: Split, idx: np.ndarray, pos: list, queries
     sub_pred = np.array([[remap[int(j)] for j in idx[i, :top]] for i in qi])
     sub_pos = [np.array([remap[int(j)] for j in pos[i] if int(j) in remap], dtype=np.int64) for i in qi]
     retrieval_grid(q_imgs, db_imgs, sub_pred, sub_pos, qi, k=top)
-    plt.savefig(path, dpi=100, bbox_inches="tight")
+    buf = io.BytesIO()
+    plt.savefig(buf, format="png", dpi=100, bbox_inches="tight")
     plt.close("all")
+    return buf.getvalue()
+
+
+def _predictions_writer(qn: list, dn: list, idx: np.ndarray, k: int):
+    def write(f):
+        w = csv.writer(f)
+        w.writerow(["query"] + [f"top{i + 1}" for i in range(k)])
+        for i, row in enumerate(idx):
+            w.writerow([qn[i]] + [dn[j] for j in row])
+    return write
 
 
 def evaluate_run(cfg: RunConfig, checkpoint, out=None, *, predictions: bool = False, grid_queries: int = 8,
                  device: str = "auto") -> dict:
     """Recall@N of the weights in ``checkpoint`` (a ``{"model": state_dict}`` file) on the test data of
-    ``cfg`` only (``data.test_format``/``data.test_root``, by default the format's test set). Writes
-    ``recalls.json`` (``num_queries`` = the queries Recall@N divides by), optionally ``predictions.csv``
-    and ``retrieval_grid.png`` under ``out``."""
+    ``cfg`` only (``data.test_format``/``data.test_root``, by default the format's test set). The config,
+    ``device``, the checkpoint and its fit to the model are checked before ``out`` is touched; ``out`` is
+    then locked (:class:`~vpr_nb.run_folder.OutputFolder`, ``existing="allow"``) and receives, each written
+    atomically, optionally ``predictions.csv`` (file names that are not UTF-8 are written as their original
+    bytes) and ``retrieval_grid.png``, then ``recalls.json`` (``num_queries`` = the queries Recall@N
+    divides by)."""
     validate(cfg, for_training=False)
+    check_device(device, "--device")
     test_data = split_spec(cfg.data, "test").describe()   # where the test data is, before reading anything
     state = load_checkpoint(checkpoint)
-    if "model" not in state:
+    if not isinstance(state, dict) or "model" not in state:
         raise ValueError(f"{checkpoint} has no 'model' entry; pass a best.pt/last.pt written by vpr_nb.training")
     model = build_checked(cfg)
-    model.load_state_dict(state["model"])
+    load_weights(model, state["model"], checkpoint)
     model.to(resolve_device(device))
-    bad: list = []
-    test = load_split(cfg, "test", image_size=cfg.eval.image_size or None, report=bad)
-    conv = convention(cfg, test)
-    db = compute_descriptors(model, test.db_images, cfg.eval.batch_size)
-    q = compute_descriptors(model, test.q_images, cfg.eval.batch_size)
-    ns = cfg.eval.ns or (1, 5, 10, 20)
-    k = min(max(cfg.eval.k, max(ns)), len(db))
-    _, idx = retrieve(db, q, k)
-    pos = test.positives()
-    recalls = recall_at_n(idx, pos, [n for n in ns if n <= k], no_positive=conv)
-    n_no_pos = sum(1 for p in pos if len(p) == 0)
-    print(f"Recall@N convention: {conv} ({'every query counts' if conv == 'all' else 'queries without a positive are left out'}; "
-          f"{n_no_pos} of {len(pos)} queries have no positive)")
-    result = json.loads(json.dumps({
-        "checkpoint": str(checkpoint), "data": cfg.to_dict()["data"], "test_data": test_data, "num_db": len(db),
-        "num_queries": counted_queries(pos, conv), "num_queries_total": len(q), "queries_without_positive": n_no_pos,
-        "recall_convention": conv, "pos_radius": test.pos_radius, "unreadable_images": len(bad),
-        "recall": {str(n): v for n, v in recalls.items()}}))
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "recalls.json").write_text(json.dumps(result, indent=1))
-        if bad:
-            _write_unreadable(out, bad)
-        if predictions:
-            qn, dn = test.image_names("q"), test.image_names("db")
-            with open(out / "predictions.csv", "w", newline="") as fh:
-                w = csv.writer(fh)
-                w.writerow(["query"] + [f"top{i + 1}" for i in range(k)])
-                for i, row in enumerate(idx):
-                    w.writerow([qn[i]] + [dn[j] for j in row])
-        if grid_queries:
-            _retrieval_grid(out / "retrieval_grid.png", test, idx, pos, min(grid_queries, len(q)), min(5, k))
+    folder = OutputFolder(out, existing="allow") if out is not None else None
+    with folder if folder is not None else contextlib.nullcontext():
+        bad: list = []
+        test = load_split(cfg, "test", image_size=cfg.eval.image_size or None, report=bad)
+        conv = convention(cfg, test)
+        db = compute_descriptors(model, test.db_images, cfg.eval.batch_size)
+        q = compute_descriptors(model, test.q_images, cfg.eval.batch_size)
+        ns = cfg.eval.ns or (1, 5, 10, 20)
+        k = min(max(cfg.eval.k, max(ns)), len(db))
+        _, idx = retrieve(db, q, k)
+        pos = test.positives()
+        recalls = recall_at_n(idx, pos, [n for n in ns if n <= k], no_positive=conv)
+        n_no_pos = sum(1 for p in pos if len(p) == 0)
+        print(f"Recall@N convention: {conv} ({'every query counts' if conv == 'all' else 'queries without a positive are left out'}; "
+              f"{n_no_pos} of {len(pos)} queries have no positive)")
+        result = json.loads(json.dumps({
+            "checkpoint": str(checkpoint), "data": cfg.to_dict()["data"], "test_data": test_data, "num_db": len(db),
+            "num_queries": counted_queries(pos, conv), "num_queries_total": len(q), "queries_without_positive": n_no_pos,
+            "recall_convention": conv, "pos_radius": test.pos_radius, "unreadable_images": len(bad),
+            "recall": {str(n): v for n, v in recalls.items()}}))
+        if folder is not None:
+            if bad:
+                folder.write_text("unreadable_images.txt", _unreadable_text(bad), errors="surrogateescape")
+            if predictions:
+                atomic_write(out / "predictions.csv", _predictions_writer(test.image_names("q"), test.image_names("db"),
+                                                                          idx, k),
+                             text=True, errors="surrogateescape", newline="")
+            if grid_queries:
+                png = _retrieval_grid(test, idx, pos, min(grid_queries, len(q)), min(5, k))
+                atomic_write(out / "retrieval_grid.png", lambda f: f.write(png))
+            folder.write_text("recalls.json", json.dumps(result, indent=1))   # last: the evaluation is complete
     return result
 
 
-__all__ = ["build", "build_checked", "check_model", "model_input_size", "steps_per_epoch", "optimizer_steps",
+__all__ = ["CLI_ERRORS", "build", "build_checked", "check_model", "model_input_size", "steps_per_epoch", "optimizer_steps",
            "clique_places", "load_geo", "check_images", "load_split", "convention", "build_source", "OutputFolder",
-           "train_run", "evaluate_run"]
+           "read_run_config", "deviations", "config_summary", "train_run", "evaluate_run"]

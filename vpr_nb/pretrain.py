@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import platform
 import sys
 import time
@@ -266,7 +267,40 @@ def _read_backbone(path: Path, width: int, out_channels: int) -> SmallCNN:
                                    f"the pair with git or re-make it with `python -m vpr_nb.pretrain --out {path}`")
 
 
+def _config_from(profile: str, items) -> PretrainConfig:
+    """The :class:`PretrainConfig` of ``profile`` with ``KEY=VALUE`` items, each parsed by its field's type."""
+    import typing
+
+    from .typed_parsing import parse_value
+
+    kw = dict(PROFILES[profile])
+    hints = typing.get_type_hints(PretrainConfig)
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in hints:
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY one of {', '.join(hints)}")
+        kw[key] = parse_value(value, hints[key], f"--set {key}")
+    try:
+        return PretrainConfig(**kw)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"--set: {exc}") from None
+
+
+def _check_out(out: Path) -> Path:
+    """``out`` can be written (before the minutes of training): not a folder, in a folder this user may write."""
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder: give the checkpoint's file name, e.g. {out / 'course_backbone.pt'}")
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise ValueError(f"--out {out}: cannot write in {parent}; choose a folder you can write to")
+    return out
+
+
 def main(argv=None) -> int:
+    from .experiment import CLI_ERRORS
+
     parser = argparse.ArgumentParser(prog="python -m vpr_nb.pretrain", description=__doc__.split("\n\n")[0])
     parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
     parser.add_argument("--out", default=None, help="checkpoint path (a .json card is written beside it); default: the "
@@ -279,20 +313,16 @@ def main(argv=None) -> int:
             parser.error("--out is required: this vpr_nb is installed, not run from a clone of the course, and the "
                          "installed course backbone is not overwritten")
         args.out = str(CHECKPOINT)
-    kw = dict(PROFILES[args.profile])
-    known = {f.name: f for f in fields(PretrainConfig)}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep or key not in known:
-            parser.error(f"--set {item!r}: expected KEY=VALUE with KEY one of {sorted(known)}")
-        kw[key] = json.loads(value) if value[:1] in "[{" or value.replace(".", "", 1).replace("e-", "").isdigit() else value
-        if isinstance(kw[key], list):
-            kw[key] = tuple(kw[key])
-    torch.set_num_threads(1)             # one thread: the same weights on any machine
-    cfg = PretrainConfig(**kw)
-    backbone, info = pretrain(cfg)
-    command = "python -m vpr_nb.pretrain " + " ".join(a if " " not in a else repr(a) for a in (argv or sys.argv[1:]))
-    meta = save_backbone(backbone, cfg, info, args.out, command.strip())
+    try:
+        cfg = _config_from(args.profile, args.set)       # checked before the minutes of training
+        out = _check_out(Path(args.out))
+        torch.set_num_threads(1)             # one thread: the same weights on any machine
+        backbone, info = pretrain(cfg)
+        command = "python -m vpr_nb.pretrain " + " ".join(a if " " not in a else repr(a) for a in (argv or sys.argv[1:]))
+        meta = save_backbone(backbone, cfg, info, out, command.strip())
+    except CLI_ERRORS as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print(json.dumps({k: meta[k] for k in ("file", "sha256", "bytes", "train_seconds", "held_out")}, indent=1))
     return 0
 

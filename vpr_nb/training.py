@@ -26,9 +26,7 @@ checkpoint ends with the same weights as an uninterrupted run. Checkpoints are w
 from __future__ import annotations
 
 import copy
-import os
 import pickle
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -40,6 +38,7 @@ from tqdm.auto import tqdm
 
 from . import losses as L
 from ._checks import check_int, check_positive
+from .atomic import atomic_write
 from .evaluation import as_image_array, compute_descriptors, evaluate_on_split, images_to_tensor, mean_pairwise_cosine
 from .mining import mine_triplets
 from .split import Split, check_split
@@ -257,7 +256,48 @@ class TripletSource:
 
     def _descriptors(self, model):
         model = unwrap_ddp(model)
-        return compute_descriptors(model, self.split.q_images), compute_descriptors(model, self.split.db_images)
+        q, db = compute_descriptors(model, self.split.q_images), compute_descriptors(model, self.split.db_images)
+        if not (np.isfinite(q).all() and np.isfinite(db).all()):
+            raise NotFinite("descriptors of the training images")
+        return q, db
+
+    def untrainable(self) -> dict[str, int]:
+        """Training queries that can never give a triplet, by reason, from the data alone: ``no_positive``
+        (none within ``split.train_pos_radius``), ``heading`` (positives, none facing within
+        ``max_heading_diff``), ``negatives`` (fewer than M database images beyond ``neg_radius``); and
+        ``trainable``, the rest, out of ``queries``."""
+        if getattr(self, "_untrainable", None) is None:
+            n_db, no_pos, heading, few = len(self.db), 0, 0, 0
+            s, h = self.split, self.max_heading_diff
+            qh, dh = (None, None) if h is None or s.q_heading is None or s.db_heading is None else \
+                (np.asarray(s.q_heading, dtype=np.float64), np.asarray(s.db_heading, dtype=np.float64))
+            for i, (pos, near) in enumerate(zip(self.positives, self.near)):
+                if len(pos) == 0:
+                    no_pos += 1
+                elif qh is not None and not (np.abs((dh[pos] - qh[i] + 180.0) % 360.0 - 180.0) <= h).any():
+                    heading += 1
+                elif n_db - len(near) < self.num_negatives:
+                    few += 1
+            q = len(self.positives)
+            self._untrainable = {"queries": q, "no_positive": no_pos, "heading": heading, "negatives": few,
+                                 "trainable": q - no_pos - heading - few}
+        return self._untrainable
+
+    def no_step_reason(self) -> str:
+        """Why an epoch formed no triplet (for :func:`train_epoch`'s error)."""
+        u, s = self.untrainable(), self.split
+        parts = [f"no positives within {s.train_pos_radius:g} m for {u['no_positive']} of {u['queries']} "
+                 f"training queries"]
+        fixes = ["check the query and database positions or use a larger training radius (the split's "
+                 "train_pos_radius)"] if u["no_positive"] else []
+        if u["heading"]:
+            parts.append(f"no positive facing within {self.max_heading_diff:g} degrees for {u['heading']} more")
+            fixes.append("allow more heading difference (source.max_heading_diff)")
+        if u["negatives"]:
+            parts.append(f"fewer than {self.num_negatives} database images beyond {self.neg_radius:g} m (negatives) "
+                         f"for {u['negatives']} more")
+            fixes.append("use fewer negatives (source.num_negatives)")
+        return "; ".join(parts) + f" (training split {s.name})" + (": " + ", or ".join(fixes) if fixes else "")
 
     def _collapsed_loss(self, b: int, m: int, dim: int, geo) -> float:
         """The loss of this step's triplets if every descriptor were the same unit vector."""
@@ -274,6 +314,8 @@ class TripletSource:
         """
         rank, world = shard
         s = self.split
+        if self.untrainable()["trainable"] == 0:
+            return                                 # no query can give a triplet: train_epoch says why
         heading = {}
         if self.max_heading_diff is not None:
             heading = dict(q_heading=s.q_heading, db_heading=s.db_heading, max_heading_diff=self.max_heading_diff)
@@ -297,6 +339,8 @@ class TripletSource:
             x = images_to_tensor(np.concatenate([self.q[tb.query[v]], self.db[tb.positive[v]],
                                                  self.db[tb.negatives[v].reshape(-1)]])).to(device)
             out = model(x).float()
+            if not torch.isfinite(out).all():
+                raise NotFinite("descriptors")
             q, p, n = out[:b], out[b:2 * b], out[2 * b:].view(b, m, -1)
             geo = torch.as_tensor(tb.geo_qp[v], dtype=out.dtype, device=out.device)
             self.last_collapsed_loss = self._collapsed_loss(b, m, out.shape[1], geo) * (world / total)
@@ -351,6 +395,11 @@ class PlaceBatchSource:
                                  "load_state_dict; resume with the same source.sampler")
             load(state["sampler"])
 
+    def no_step_reason(self) -> str:
+        """Why an epoch took no step (for :func:`train_epoch`'s error)."""
+        return ("make_batches gave no batch of places: check that enough places have images_per_place images "
+                "(source.places_per_batch, source.images_per_place, source.batches_per_epoch)")
+
     def _groups(self, p: int, shard: tuple[int, int]) -> list[np.ndarray]:
         """The place slots of each loss group that this process (``shard=(rank, world)``) takes."""
         sizes = self.loss_groups or (p,)
@@ -379,6 +428,8 @@ class PlaceBatchSource:
                  for g, e in zip(groups, ends)]
         for batch in batches:
             emb = model(images_to_tensor(self.x[batch.reshape(-1)]).to(device)).float()
+            if not torch.isfinite(emb).all():
+                raise NotFinite("descriptors")
             same = torch.nn.functional.normalize(torch.ones_like(emb.detach()), dim=1)   # every descriptor equal
             if len(parts) == 1:
                 self.last_collapsed_loss = float(self.loss(same, parts[0][1]))
@@ -390,19 +441,12 @@ class PlaceBatchSource:
 
 # ------------------------------------------------------------------------------ checkpoints
 def save_checkpoint(path, state: dict) -> Path:
-    """Write ``state`` with ``torch.save`` atomically: a temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as f:          # a file object: the archive is named "archive", not after the
-            torch.save(state, f)            # random temporary name, so equal states give equal bytes
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return path
+    """Write ``state`` with ``torch.save`` atomically (:func:`vpr_nb.atomic.atomic_write`): a temporary file in
+    the same folder, then rename. A failed write (e.g. a full disk) raises one OSError naming the file and
+    leaves the previous checkpoint and no temporary file."""
+    # a file object: the archive is named "archive", not after the random temporary name, so equal states
+    # give equal bytes
+    return atomic_write(path, lambda f: torch.save(state, f))
 
 
 def load_checkpoint(path) -> dict:
@@ -413,15 +457,49 @@ def load_checkpoint(path) -> dict:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
+        with open(path, "rb") as f:
+            head = f.read(4)
+        if head != b"PK\x03\x04" and head[:1] != b"\x80":      # neither torch's zip archive nor its legacy pickle
+            raise ValueError(f"{path} is not a readable torch checkpoint ({path.stat().st_size} bytes, not a torch "
+                             f"archive): the file is truncated, damaged or of another format; restore it, or use "
+                             f"another checkpoint of the run (checkpoints/best.pt or last.pt)") from None
         first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
         raise ValueError(
             f"{path} is not a checkpoint of plain tensors and containers (as vpr_nb writes): it holds pickled "
             f"Python objects ({first[:160]}). vpr_nb reads checkpoints with weights_only=True and will not "
             f"unpickle it, since unpickling can run arbitrary code. Save only the state dict, e.g. "
             f"torch.save({{'model': model.state_dict()}}, path), from code you trust.") from None
-    except (RuntimeError, EOFError) as exc:
-        raise ValueError(f"{path} is not a readable torch checkpoint ({str(exc)[:160]}); "
-                         f"is the file truncated or of another format?") from None
+    except (RuntimeError, EOFError, OSError) as exc:
+        first = str(exc).split(". ")[0][:160] or type(exc).__name__
+        raise ValueError(f"{path} is not a readable torch checkpoint ({first}): the file is truncated, "
+                         f"damaged or of another format; restore it, or use another checkpoint of the run "
+                         f"(checkpoints/best.pt or last.pt)") from None
+
+
+def load_weights(model: torch.nn.Module, state, path) -> None:
+    """``model.load_state_dict(state)`` for the weights read from ``path``; a ValueError naming the file and
+    what differs (missing / unexpected tensors, shapes) when they belong to another architecture or width."""
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise ValueError(f"{path}: its weights are not a state dict of tensors; pass a best.pt/last.pt written "
+                         f"by vpr_nb.training")
+    own = model.state_dict()
+    missing = [k for k in own if k not in state]
+    unexpected = [k for k in state if k not in own]
+    shapes = [(k, tuple(state[k].shape), tuple(own[k].shape)) for k in own
+              if k in state and state[k].shape != own[k].shape]
+    if missing or unexpected or shapes:
+        parts = []
+        if shapes:
+            k, a, b = shapes[0]
+            parts.append(f"{len(shapes)} tensor(s) of another shape, first {k}: {a} in the file, {b} in the model")
+        if missing:
+            parts.append(f"{len(missing)} tensor(s) the model needs are missing, first {missing[0]}")
+        if unexpected:
+            parts.append(f"{len(unexpected)} tensor(s) the model does not have, first {unexpected[0]}")
+        raise ValueError(f"{path} holds the weights of another model ({'; '.join(parts)}): build the model with "
+                         f"the settings it was trained with (vpr_nb.evaluate: --run its run folder, or the same "
+                         f"--set model.* values)")
+    model.load_state_dict(state)
 
 
 def amp_dtype(device: torch.device) -> torch.dtype:
@@ -546,12 +624,39 @@ def batch_loss(loss: torch.Tensor, world: int) -> float:
     return logged.item()
 
 
+class NotFinite(ValueError):
+    """Training diverged: ``what`` (the loss, the weights, the descriptors) became NaN or inf. Raised by the
+    sources and :func:`train_epoch`, which names the step and the learning rate."""
+
+    def __init__(self, what: str, value: str = "NaN or inf"):
+        super().__init__(f"the {what} became {value}")
+        self.what, self.value = what, value
+
+
+def _finite_weights(params) -> bool:
+    """All of ``params`` finite (one reduction per tensor; NaN and inf propagate through the sums)."""
+    sums = [p.detach().sum(dtype=torch.float32) for p in params if p.numel()]
+    return not sums or bool(torch.isfinite(torch.stack(sums)).all())
+
+
+def _no_step_reason(source, world: int) -> str:
+    reason = getattr(source, "no_step_reason", None)
+    text = reason() if callable(reason) else "the source gave no batch"
+    if world > 1:
+        text += f" (with {world} processes a step needs at least {world} valid triplets)"
+    return text
+
+
 def train_epoch(net: torch.nn.Module, source, epoch: int, cfg: TrainConfig, opt, sched, setup: DeviceSetup,
-                shard: tuple[int, int] = (0, 1)) -> tuple[float, float]:
+                shard: tuple[int, int] = (0, 1), log=None) -> tuple[float, float]:
     """One epoch of optimiser steps on the losses of ``source``, seeded from ``(cfg.seed, epoch)``.
 
     Returns the epoch's mean loss and mean collapsed loss (the loss if every descriptor were equal, as
-    reported by the source after each step; NaN when it reports none).
+    reported by the source after each step; NaN when it reports none). ``log.step(record)`` (e.g. a
+    :class:`vpr_nb.run_log.RunLog`) gets every step's epoch, step, loss, collapsed loss, lr and seconds.
+    ValueError when the loss, the weights or the descriptors become NaN/inf (naming the step and the
+    learning rate) and when the epoch takes no optimiser step (saying why, e.g. no positives), since the
+    model would then not be trained at all.
     """
     rng = np.random.default_rng([cfg.seed, epoch])
     torch.manual_seed(cfg.seed * 100_003 + epoch)
@@ -559,15 +664,40 @@ def train_epoch(net: torch.nn.Module, source, epoch: int, cfg: TrainConfig, opt,
         source.epoch = epoch
     unwrap_ddp(net).train()
     total, collapsed, steps = 0.0, 0.0, 0
-    with setup.autocast():
-        for loss in source.steps(net, rng, shard=shard, device=setup.device):
-            if not torch.isfinite(loss):
-                raise ValueError(f"the loss became {loss.item()} at epoch {epoch}; lower the learning rate")
-            optimizer_step(loss, opt, setup.scaler)
-            scheduler_step(sched, cfg, "batch")
-            total, steps = total + batch_loss(loss, shard[1]), steps + 1
-            collapsed += float(getattr(source, "last_collapsed_loss", float("nan")))
-    return total / max(steps, 1), collapsed / max(steps, 1)
+    params, t0 = [p for g in opt.param_groups for p in g["params"]], time.perf_counter()
+    lr = opt.param_groups[0]["lr"]
+    if not _finite_weights(params):
+        raise ValueError(f"the model's weights hold NaN or inf at the start of epoch {epoch}, before any step of "
+                         f"it: check the weights it started from (the backbone's file, a resumed checkpoint)")
+    try:
+        with setup.autocast():
+            for loss in source.steps(net, rng, shard=shard, device=setup.device):
+                lr = opt.param_groups[0]["lr"]
+                if not torch.isfinite(loss):
+                    raise NotFinite("loss", str(loss.item()))
+                optimizer_step(loss, opt, setup.scaler)
+                if not _finite_weights(params):
+                    raise NotFinite("weights")
+                scheduler_step(sched, cfg, "batch")
+                logged = batch_loss(loss, shard[1])
+                total, steps = total + logged, steps + 1
+                last = float(getattr(source, "last_collapsed_loss", float("nan")))
+                collapsed += last
+                if log is not None:
+                    log.step({"epoch": epoch, "step": steps - 1, "loss": logged, "collapsed_loss": last, "lr": lr,
+                              "seconds": time.perf_counter() - t0})
+    except ValueError as exc:             # NotFinite, or a check of the model's own layers on its activations
+        if not isinstance(exc, NotFinite) and "NaN or inf" not in str(exc):
+            raise
+        if epoch == 0 and steps == 0:
+            raise ValueError(f"{exc} before the first optimiser step: the untrained model gives NaN/inf on the "
+                             f"training images; check the images and the weights it started from") from None
+        raise ValueError(f"training diverged: {exc} at optimiser step {steps + 1} of epoch {epoch} (lr {lr:g}); "
+                         f"lower train.lr, e.g. --set train.lr={lr / 10:g}") from None
+    if steps == 0:
+        raise ValueError(f"epoch {epoch} took no optimiser step, so nothing would be trained: "
+                         f"{_no_step_reason(source, shard[1])}")
+    return total / steps, collapsed / steps
 
 
 def evaluate_epoch(model: torch.nn.Module, val_split: Split, ns: tuple[int, ...]) -> tuple[dict, float]:
@@ -618,17 +748,21 @@ def resume_state(ckdir: Path, cfg: TrainConfig, model, opt, sched, source, scale
 
 def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None = None, *,
           checkpoint_dir=None, resume: bool = True, progress: bool = True,
-          stop_after: int | None = None) -> History:
+          stop_after: int | None = None, log=None) -> History:
     """Train ``model`` with losses from ``source`` (:class:`TripletSource` or :class:`PlaceBatchSource`).
 
     After every epoch: validation Recall@N on ``val_split`` (:func:`evaluate_epoch`), the
     best-on-validation weights kept in memory (and in ``checkpoint_dir/best.pt``), and, with a
     ``checkpoint_dir``, the full state in ``last.pt``. With ``resume`` an existing ``last.pt`` is
     continued. ``stop_after`` ends the run after that many epochs of this call (to simulate an
-    interruption). Returns the :class:`History`; with ``config.restore_best`` the model ends with
-    the best validation weights. With ``config.initial_candidate`` the starting weights are evaluated
-    first and compete as epoch 0 (:meth:`History.add_initial`); with ``config.patience`` the run stops
-    after that many epochs without a better validation Recall@``ns[0]`` (``History.stopped_early``).
+    interruption). ``log``: an object with ``step(record)`` and ``epoch(record)`` (e.g.
+    :class:`vpr_nb.run_log.RunLog`, the CSV / TensorBoard files of a run), called on rank 0 after every
+    optimiser step and every epoch. Returns the :class:`History`; with ``config.restore_best`` the model
+    ends with the best validation weights. With ``config.initial_candidate`` the starting weights are
+    evaluated first and compete as epoch 0 (:meth:`History.add_initial`); with ``config.patience`` the run
+    stops after that many epochs without a better validation Recall@``ns[0]`` (``History.stopped_early``).
+    ValueError when training diverges (NaN/inf, naming the step and the learning rate) or an epoch takes no
+    optimiser step (:func:`train_epoch`).
 
     Distributed: when a ``torch.distributed`` process group is initialised (e.g. under ``torchrun``)
     the model is wrapped in ``DistributedDataParallel``; every process mines the same batches and
@@ -659,12 +793,15 @@ def train(model: torch.nn.Module, source, val_split, config: TrainConfig | None 
     for epoch in bar:
         t0 = time.perf_counter()
         lr = opt.param_groups[0]["lr"]
-        loss, collapsed = train_epoch(net, source, epoch, cfg, opt, sched, setup, shard=(rank, world))
+        loss, collapsed = train_epoch(net, source, epoch, cfg, opt, sched, setup, shard=(rank, world),
+                                      log=log if rank == 0 else None)
         scheduler_step(sched, cfg, "epoch")
         val, cosine = evaluate_epoch(model, val_split, cfg.ns)
         improved = history.add_epoch(epoch, loss, collapsed, cosine, lr, time.perf_counter() - t0, val, cfg.ns[0])
         if improved:
             best_state = copy.deepcopy(model.state_dict())
+        if log is not None and rank == 0:
+            log.epoch(history.epochs[-1])
         history.stopped_early = cfg.patience is not None and history.epochs_since_best >= cfg.patience
         if ckdir is not None and rank == 0:
             save_epoch_checkpoints(ckdir, training_state(model, opt, sched, source, history, epoch, best_state, cfg,
