@@ -40,7 +40,6 @@ import time
 
 import matplotlib.pyplot as plt
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 import vpr_nb.notebook

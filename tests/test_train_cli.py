@@ -54,6 +54,7 @@ def dinov2(monkeypatch):
     def fake(hub_dir=None, model="dinov2_vitb14", num_trainable_blocks=4):
         return models.DINOv2Backbone(TinyViT(), num_trainable_blocks)
     monkeypatch.setattr(models, "load_dinov2", fake)
+    monkeypatch.setitem(models.BACKBONES, "dinov2", fake)      # the name -> builder map build_model reads
 
 
 # ------------------------------------------------------------------------------------------ config

@@ -26,7 +26,7 @@ from . import losses as L
 from .aggregation import AGGREGATOR_NAMES, CHANNEL_ARGUMENTS
 from .datasets.registry import REGISTRY, SYNTHETIC, SplitSpec, dataset_format, role_spec
 from .losses import LOSSES, TRIPLET_LOSSES
-from .models import BACKBONE_NAMES, SmallCNN, VGG16Backbone, load_dinov2
+from .models import BACKBONE_NAMES, BACKBONES
 from .synthetic import make_config
 from .training import SCHEDULERS, OPTIMIZERS, TrainConfig  # noqa: F401 (re-exported choices)
 from .typed_parsing import parse_value
@@ -386,14 +386,9 @@ def _validate_training_data(d: DataConfig, s: SourceConfig) -> None:
         raise need_root
 
 
-# what model.backbone names build, for checking model.backbone_kwargs against its signature (the names of
-# vpr_nb.models.build_model; tests/test_errors_cli.py checks that the two agree)
-BACKBONE_BUILDERS = {"small_cnn": SmallCNN, "vgg16": VGG16Backbone, "dinov2": load_dinov2}
-
-
 def check_backbone_kwargs(m: ModelConfig) -> None:
     """``model.backbone_kwargs`` holds only arguments of the backbone's constructor (before anything is built)."""
-    build = BACKBONE_BUILDERS.get(m.backbone)
+    build = BACKBONES.get(m.backbone)
     if build is None:
         return                                # an unknown backbone name is refused by the choices check
     params = inspect.signature(build).parameters
@@ -440,5 +435,4 @@ def validate(cfg: RunConfig, *, for_training: bool = True) -> None:
 
 __all__ = ["DataConfig", "ModelConfig", "SourceConfig", "EvalConfig", "RunConfig", "PRESETS", "SECTIONS",
            "resolve", "with_overrides", "validate", "split_spec", "check_val_test", "SplitSpec", "split_override",
-           "parse_value", "LOSSES", "TRIPLET_LOSSES", "build_loss", "check_device", "check_backbone_kwargs",
-           "BACKBONE_BUILDERS"]
+           "parse_value", "LOSSES", "TRIPLET_LOSSES", "build_loss", "check_device", "check_backbone_kwargs"]

@@ -31,7 +31,7 @@ from torch import nn
 
 from ._checks import check_int, check_tensor, validated_inputs
 
-BACKBONE_NAMES = ("small_cnn", "vgg16", "dinov2")
+BACKBONE_NAMES = ("small_cnn", "vgg16", "dinov2")   # the keys of BACKBONES (defined below its classes)
 DINOV2_MODELS = ("dinov2_vits14", "dinov2_vitb14", "dinov2_vitl14", "dinov2_vitg14",
                  "dinov2_vits14_reg", "dinov2_vitb14_reg", "dinov2_vitl14_reg", "dinov2_vitg14_reg")
 DINOV2_HUB_ENV = "VPR_NB_DINOV2_HUB"
@@ -179,6 +179,12 @@ def read_weights(path, what: str = "checkpoint") -> Mapping:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
+        with open(path, "rb") as f:
+            head = f.read(4)
+        if head != b"PK\x03\x04" and head[:1] != b"\x80":   # neither torch's zip archive nor its legacy pickle
+            raise ValueError(f"{path} is not a readable torch {what} ({path.stat().st_size} bytes, not a torch "
+                             f"archive): the file is truncated or corrupted, or was not written by torch.save; "
+                             f"restore it or write it again") from None
         m = _UNSUPPORTED_GLOBAL.search(str(exc))
         held = (f"pickled Python objects (class {m.group(1)})" if m else
                 "data that is not plain tensors and containers (or a corrupted file)")
@@ -438,6 +444,12 @@ class VPRModel(nn.Module):
             return F.normalize(self.aggregator(features), p=2, dim=1)
 
 
+# the one map from a backbone name to what builds it (build_model; the config checks backbone_kwargs
+# against these signatures): a new backbone is a class or function and a line here
+BACKBONES = {"small_cnn": SmallCNN, "vgg16": VGG16Backbone, "dinov2": load_dinov2}
+assert tuple(BACKBONES) == BACKBONE_NAMES
+
+
 def build_model(backbone: str | nn.Module = "small_cnn", aggregator: str = "gem", *,
                 backbone_kwargs: Mapping | None = None, **aggregator_kwargs) -> VPRModel:
     """Build a :class:`VPRModel` by name.
@@ -453,12 +465,11 @@ def build_model(backbone: str | nn.Module = "small_cnn", aggregator: str = "gem"
 
     if backbone_kwargs is not None and not isinstance(backbone_kwargs, Mapping):
         raise ValueError(f"backbone_kwargs must be a dict or None, got {type(backbone_kwargs).__name__}")
-    builders = {"small_cnn": SmallCNN, "vgg16": VGG16Backbone, "dinov2": load_dinov2}
     if isinstance(backbone, str):
-        if backbone not in builders:
+        if backbone not in BACKBONES:
             raise ValueError(f"unknown backbone {backbone!r}; valid names are {', '.join(BACKBONE_NAMES)} "
                              f"(or pass a backbone module)")
-        backbone = builders[backbone](**(backbone_kwargs or {}))
+        backbone = BACKBONES[backbone](**(backbone_kwargs or {}))
     elif not isinstance(backbone, nn.Module) or not hasattr(backbone, "out_channels"):
         raise ValueError(f"backbone must be one of {', '.join(BACKBONE_NAMES)} or a module with out_channels, "
                          f"got {type(backbone).__name__}")

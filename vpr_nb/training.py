@@ -26,7 +26,6 @@ checkpoint ends with the same weights as an uninterrupted run. Checkpoints are w
 from __future__ import annotations
 
 import copy
-import pickle
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -449,57 +448,24 @@ def save_checkpoint(path, state: dict) -> Path:
     return atomic_write(path, lambda f: torch.save(state, f))
 
 
+RUN_HINT = ("build the model with the settings it was trained with (vpr_nb.evaluate: --run its run folder, "
+            "or the same --set model.* values)")
+
+
 def load_checkpoint(path) -> dict:
-    """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: tensors and plain data only)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}; train first or check the path")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        with open(path, "rb") as f:
-            head = f.read(4)
-        if head != b"PK\x03\x04" and head[:1] != b"\x80":      # neither torch's zip archive nor its legacy pickle
-            raise ValueError(f"{path} is not a readable torch checkpoint ({path.stat().st_size} bytes, not a torch "
-                             f"archive): the file is truncated, damaged or of another format; restore it, or use "
-                             f"another checkpoint of the run (checkpoints/best.pt or last.pt)") from None
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise ValueError(
-            f"{path} is not a checkpoint of plain tensors and containers (as vpr_nb writes): it holds pickled "
-            f"Python objects ({first[:160]}). vpr_nb reads checkpoints with weights_only=True and will not "
-            f"unpickle it, since unpickling can run arbitrary code. Save only the state dict, e.g. "
-            f"torch.save({{'model': model.state_dict()}}, path), from code you trust.") from None
-    except (RuntimeError, EOFError, OSError) as exc:
-        first = str(exc).split(". ")[0][:160] or type(exc).__name__
-        raise ValueError(f"{path} is not a readable torch checkpoint ({first}): the file is truncated, "
-                         f"damaged or of another format; restore it, or use another checkpoint of the run "
-                         f"(checkpoints/best.pt or last.pt)") from None
+    """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: tensors and plain data
+    only), through :func:`vpr_nb.models.read_weights`: one-line errors naming the file when it is missing,
+    truncated, not a torch file or holds pickled objects (never unpickled)."""
+    from .models import read_weights
+    return dict(read_weights(path, "checkpoint"))
 
 
 def load_weights(model: torch.nn.Module, state, path) -> None:
-    """``model.load_state_dict(state)`` for the weights read from ``path``; a ValueError naming the file and
-    what differs (missing / unexpected tensors, shapes) when they belong to another architecture or width."""
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise ValueError(f"{path}: its weights are not a state dict of tensors; pass a best.pt/last.pt written "
-                         f"by vpr_nb.training")
-    own = model.state_dict()
-    missing = [k for k in own if k not in state]
-    unexpected = [k for k in state if k not in own]
-    shapes = [(k, tuple(state[k].shape), tuple(own[k].shape)) for k in own
-              if k in state and state[k].shape != own[k].shape]
-    if missing or unexpected or shapes:
-        parts = []
-        if shapes:
-            k, a, b = shapes[0]
-            parts.append(f"{len(shapes)} tensor(s) of another shape, first {k}: {a} in the file, {b} in the model")
-        if missing:
-            parts.append(f"{len(missing)} tensor(s) the model needs are missing, first {missing[0]}")
-        if unexpected:
-            parts.append(f"{len(unexpected)} tensor(s) the model does not have, first {unexpected[0]}")
-        raise ValueError(f"{path} holds the weights of another model ({'; '.join(parts)}): build the model with "
-                         f"the settings it was trained with (vpr_nb.evaluate: --run its run folder, or the same "
-                         f"--set model.* values)")
-    model.load_state_dict(state)
+    """``model.load_state_dict(state)`` for the weights read from ``path``, checked by
+    :func:`vpr_nb.models.load_state_checked`: a one-line ValueError naming the file and what differs
+    (missing / unexpected tensors, shapes) when they belong to another architecture or width."""
+    from .models import load_state_checked
+    load_state_checked(model, state, path, hint=RUN_HINT)
 
 
 def amp_dtype(device: torch.device) -> torch.dtype:
