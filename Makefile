@@ -9,6 +9,8 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEV_STAMP := $(VENV)/.installed-dev
 PROFILE ?= reproduce
+# notebooks run at once by make reproduce (each kernel uses one torch thread; a notebook waits for those it reads)
+JOBS   ?= 2
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with notebooks/sanitize.cfg --nbval-cell-timeout 600
 
 # torch: on Linux without an NVIDIA GPU (no `nvidia-smi -L`), the CPU build from PyTorch's CPU index
@@ -98,7 +100,7 @@ test-fast: dev
 	$(BIN)/python -m pytest -p no:cacheprovider -q tests -m "not slow"
 
 reproduce: venv
-	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports
+	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports --jobs $(JOBS)
 
 # re-make the course backbone (vpr_nb/weights/course_backbone.pt + .json), about 6 min on 2 cores
 pretrain: venv

@@ -167,3 +167,33 @@ def test_find_notebooks_absolute_pattern_and_checkpoints(tmp_path):
         report.find_notebooks(nbdir, str(tmp_path / "elsewhere" / "*.ipynb"))
     with pytest.raises(ValueError, match="pattern"):
         report.find_notebooks(nbdir, "")
+
+
+def test_dependencies_are_the_other_notebooks_a_notebook_names(tmp_path):
+    _write_nb(tmp_path / "04_a.ipynb", [([], "x = 1")])
+    _write_nb(tmp_path / "05_b.ipynb", [([], 'cfg = committed_experiment("04_a")')])
+    _write_nb(tmp_path / "06_c.ipynb", [([], "# mentions 04_a only in a comment without quotes")])
+    deps = report.notebook_dependencies(sorted(tmp_path.glob("*.ipynb")))
+    assert deps == {"04_a": set(), "05_b": {"04_a"}, "06_c": set()}
+
+
+@pytest.mark.slow
+def test_parallel_run_waits_for_the_notebook_it_reads(tmp_path, monkeypatch):
+    """With --jobs 2, 05 starts only after 04 has finished (04 writes a file that 05 reads), 06 runs beside;
+    records of parallel notebooks stay apart and the report lists them in order."""
+    monkeypatch.delenv(RESULTS_ENV, raising=False)
+    nbdir, flag = tmp_path / "nbs", tmp_path / "04_done.txt"
+    nbdir.mkdir()
+    _write_nb(nbdir / "04_a.ipynb", [(["parameters"], 'PROFILE = "x"'),
+                                     ([], f"import time; time.sleep(3); open({str(flag)!r}, 'w').write('ok')\n"
+                                          "from vpr_nb.report import record; record('04_a', {'n': 4})")])
+    _write_nb(nbdir / "05_b.ipynb", [(["parameters"], 'PROFILE = "x"'),
+                                     ([], f"# reads '04_a'\nassert open({str(flag)!r}).read() == 'ok'\n"
+                                          "from vpr_nb.report import record; record('05_b', {'n': 5})")])
+    _write_nb(nbdir / "06_c.ipynb", [(["parameters"], 'PROFILE = "x"'),
+                                     ([], "from vpr_nb.report import record; record('06_c', {'n': 6})")])
+    out = tmp_path / "reports"
+    assert report.main(["--profile", "ci", "--out", str(out), "--notebooks-dir", str(nbdir), "--jobs", "2"]) == 0
+    data = json.loads((out / "results.json").read_text())
+    assert [nb["name"] for nb in data["notebooks"]] == ["04_a", "05_b", "06_c"] and data["jobs"] == 2
+    assert [nb["results"] for nb in data["notebooks"]] == [{"04_a": {"n": 4}}, {"05_b": {"n": 5}}, {"06_c": {"n": 6}}]

@@ -273,40 +273,87 @@ def render_markdown(header: Mapping, notebooks: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: str = DEFAULT_PATTERN) -> dict:
-    """Run the notebook sequence and write the report; returns the ``results.json`` payload."""
+def notebook_dependencies(sources: list[Path]) -> dict[str, set[str]]:
+    """{stem: stems of the other notebooks of the run it reads}: a notebook depends on another when its code
+    names the other's stem (e.g. ``committed_experiment("04_netvlad")``, whose committed results it shows),
+    so in a parallel run it starts only after that one has finished (and rewritten its results)."""
+    stems = [p.stem for p in sources]
+    deps = {}
+    for src in sources:
+        cells = json.loads(src.read_text(encoding="utf-8")).get("cells", [])
+        code = "\n".join("".join(c.get("source", "")) for c in cells if c.get("cell_type") == "code")
+        deps[src.stem] = {o for o in stems if o != src.stem and (f'"{o}"' in code or f"'{o}'" in code)}
+    return deps
+
+
+def _run_one(src: Path, out: Path, profile: str) -> dict:
+    """Execute one notebook of the run (in a worker process when ``jobs`` > 1); its records go to a file
+    of its own, so parallel notebooks never write one file."""
+    out_nb = out / "notebooks" / src.name
+    records = out / "records" / f"{src.stem}.jsonl"
+    records.write_text("", encoding="utf-8")
+    entry = {"name": src.stem, **run_notebook(src, out_nb, profile, records)}
+    entry["results"], _ = _read_records(records, 0)
+    figures = extract_figures(json.loads(out_nb.read_text(encoding="utf-8")), src.stem, out / "figures") \
+        if out_nb.exists() else []
+    entry["figures"] = [str(p.relative_to(out)) for p in figures]
+    return entry
+
+
+def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: str = DEFAULT_PATTERN,
+               jobs: int = 1) -> dict:
+    """Run the notebook sequence and write the report; returns the ``results.json`` payload.
+
+    ``jobs`` > 1 runs that many notebooks at once (each kernel uses one torch thread), a notebook starting
+    only after the notebooks it reads (:func:`notebook_dependencies`); the report lists them in order."""
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r}; choose one of {PROFILES} "
                          f"('ci' is small and quick, 'reproduce' the full report)")
+    if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
+        raise ValueError(f"jobs must be a whole number >= 1 (notebooks run at once), got {jobs!r}")
     sources = find_notebooks(notebooks_dir, pattern)
+    deps = notebook_dependencies(sources)
     out = Path(out)
-    (out / "notebooks").mkdir(parents=True, exist_ok=True)
-    fig_dir = out / "figures"
-    fig_dir.mkdir(exist_ok=True)
+    for sub in ("notebooks", "figures", "records"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     # a run over a subset of the notebooks must not leave copies and figures of an earlier run beside it
-    for old in [*(out / "notebooks").glob("*.ipynb"), *fig_dir.glob("*.png"), out / "results.json", out / "results.md"]:
+    for old in [*(out / "notebooks").glob("*.ipynb"), *(out / "figures").glob("*.png"), *(out / "records").glob("*"),
+                out / "results.json", out / "results.md", out / "results.jsonl"]:
         old.unlink(missing_ok=True)
-    results_file = out / "results.jsonl"
-    results_file.write_text("", encoding="utf-8")
     header = environment_header(profile)
-    done, line = [], 0
-    for src in sources:
-        stem = src.stem
-        out_nb = out / "notebooks" / src.name
-        print(f"[run ] {src.name} (profile {profile})", flush=True)
-        entry = {"name": stem, **run_notebook(src, out_nb, profile, results_file)}
-        entry["results"], line = _read_records(results_file, line)
-        figures = extract_figures(json.loads(out_nb.read_text(encoding="utf-8")), stem, fig_dir) \
-            if out_nb.exists() else []
-        entry["figures"] = [str(p.relative_to(out)) for p in figures]
-        print(f"[{entry['status']:>4}] {src.name} {entry['seconds']:.1f} s"
+    start = time.perf_counter()
+    done: dict[str, dict] = {}
+
+    def report(entry):
+        print(f"[{entry['status']:>4}] {entry['name']}.ipynb {entry['seconds']:.1f} s"
               + (f"  {entry['error']}" if entry["error"] else ""), flush=True)
-        done.append(entry)
-    total = sum(nb["seconds"] for nb in done)
-    print(f"[done] {len(done)} notebooks in {total / 60:.1f} min ({profile} profile)", flush=True)
-    payload = {"header": header, "notebooks": done, "total_seconds": round(total, 1)}
+        done[entry["name"]] = entry
+
+    if jobs == 1:
+        for src in sources:
+            print(f"[run ] {src.name} (profile {profile})", flush=True)
+            report(_run_one(src, out, profile))
+    else:
+        pending, running = list(sources), {}
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            while pending or running:
+                for src in [p for p in pending if deps[p.stem] <= set(done)][:jobs - len(running)]:
+                    pending.remove(src)
+                    print(f"[run ] {src.name} (profile {profile})", flush=True)
+                    running[pool.submit(_run_one, src, out, profile)] = src
+                finished, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    del running[fut]
+                    report(fut.result())
+    entries = [done[p.stem] for p in sources]
+    wall = time.perf_counter() - start
+    print(f"[done] {len(entries)} notebooks in {wall / 60:.1f} min wall ({profile} profile, {jobs} at once; "
+          f"{sum(e['seconds'] for e in entries) / 60:.1f} min of notebook time)", flush=True)
+    payload = {"header": header, "notebooks": entries, "wall_seconds": round(wall, 1), "jobs": jobs}
     (out / "results.json").write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
-    (out / "results.md").write_text(render_markdown(header, done), encoding="utf-8")
+    (out / "results.md").write_text(render_markdown(header, entries), encoding="utf-8")
     return payload
 
 
@@ -317,9 +364,11 @@ def main(argv=None) -> int:
     parser.add_argument("--notebooks", default=DEFAULT_PATTERN, metavar="PATTERN",
                         help=f"glob of notebooks to run (default: {DEFAULT_PATTERN!r})")
     parser.add_argument("--notebooks-dir", default="notebooks", help="folder holding the notebooks")
+    parser.add_argument("--jobs", type=int, default=1, help="notebooks run at once (default 1; a notebook waits "
+                        "for those whose results it reads)")
     args = parser.parse_args(argv)
     try:
-        payload = run_report(args.profile, args.out, args.notebooks_dir, args.notebooks)
+        payload = run_report(args.profile, args.out, args.notebooks_dir, args.notebooks, jobs=args.jobs)
     except (ValueError, FileNotFoundError) as exc:
         parser.error(str(exc))  # exits with status 2 and the message
     failed = [nb["name"] for nb in payload["notebooks"] if nb["status"] != "ok"]
