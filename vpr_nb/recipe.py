@@ -423,3 +423,47 @@ def fine_tune(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
         cache = FrozenFeatureCache(recipe.cache_dtype)
     return _run(method, train_split, val_split, recipe, seed, lr, cache, progress)
 
+
+
+def _search_one(args):
+    method, train_split, val_split, recipe, seeds, lr = args
+    if lr is None:
+        return lr_search(method, train_split, val_split, recipe, seeds)
+    runs = {s: fine_tune(method, train_split, val_split, recipe, s, lr=lr) for s in seeds}
+    return LRSearch(method.name, float(lr), (float(lr),), tuple(seeds), len(val_split.q_images),
+                    {float(lr): [r.history.best_recall for r in runs.values()]}, runs,
+                    {float(lr): {s: r.history for s, r in runs.items()}})
+
+
+def search_methods(methods, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,), *,
+                   lr: float | None = None, workers: int = 1) -> dict:
+    """:func:`lr_search` for each of ``methods`` (each with its own frozen-block cache), as
+    ``{method name: LRSearch}`` in the order given; ``lr`` given: every method trains at that rate (an
+    ``LRSearch`` with a one-point grid).
+
+    ``methods`` may also hold ``(method, recipe)`` pairs, for a row that deviates from the recipe (e.g. SGD).
+    ``workers > 1`` runs the methods in that many processes (forked, so on Linux and macOS only); every run is
+    seeded on its own, so the results do not depend on ``workers``."""
+    items = []
+    for entry in methods:
+        method, rec = entry if isinstance(entry, tuple) else (entry, recipe)
+        items.append((_check_method(method), _check_recipe(rec)))
+    names = [m.name for m, _ in items]
+    if not items or len(set(names)) != len(names):
+        raise ValueError(f"methods must be a non-empty list of methods with distinct names, got {names}")
+    seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
+    workers = check_int(workers, "workers", minimum=1)
+    if lr is not None:
+        lr = check_positive(lr, "lr")
+    tasks = [(m, train_split, val_split, rec, seeds, lr) for m, rec in items]
+    if workers == 1 or len(tasks) == 1:
+        found = [_search_one(t) for t in tasks]
+    else:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        if "fork" not in mp.get_all_start_methods():
+            raise ValueError("workers > 1 needs the 'fork' start method (Linux, macOS); use workers=1 here")
+        with ProcessPoolExecutor(min(workers, len(tasks)), mp_context=mp.get_context("fork")) as pool:
+            found = list(pool.map(_search_one, tasks))
+    return dict(zip(names, found))

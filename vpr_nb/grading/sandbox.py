@@ -35,6 +35,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..package_data import RESULTS_DIR_ENV, committed_results_dir
+
 ENV_BACKEND = "VPR_NB_SANDBOX"
 TOKEN_VAR = "VPR_NB_SANDBOX_TOKEN"
 UID_BASE, UID_COUNT = 61000, 1000        # per-submission user ids, when the grader runs as root
@@ -72,14 +74,14 @@ class Outcome:
 
 
 def _python_roots() -> list[Path]:
-    """What the sandboxed Python needs to see: its installation, the vpr_nb package and its data
-    (``data_fixtures/``: the course backbone), nothing else."""
+    """What the sandboxed Python needs to see: its installation, the vpr_nb package (with the course
+    backbone, its package data) and the committed results the notebooks read, nothing else."""
     pkg = Path(__file__).resolve().parents[1]                      # .../vpr_nb
     roots = {Path(sys.prefix).resolve(), Path(sys.base_prefix).resolve(), Path(sys.executable).resolve().parent,
              pkg}
-    fixtures = pkg.parent / "data_fixtures"                        # the package's data (the course backbone)
-    if fixtures.is_dir():
-        roots.add(fixtures.resolve())
+    results = _results_dir()
+    if results is not None:                                        # a checkout's notebooks/results/ (read-only)
+        roots.add(results)
     for entry in sys.path:                                         # site-packages outside the prefixes
         p = Path(entry).resolve() if entry else None
         if p is not None and p.is_dir() and "site-packages" in p.parts:
@@ -89,6 +91,14 @@ def _python_roots() -> list[Path]:
         if not any(r.is_relative_to(k) for k in keep):
             keep.append(r)
     return keep
+
+
+def _results_dir() -> Path | None:
+    """The committed results folder the grader itself reads (:func:`vpr_nb.package_data.committed_results_dir`),
+    shown to the submission read-only and named to it by ``VPR_NB_RESULTS_DIR``: inside the OS sandbox the
+    checkout around it is not visible, so the runner could not find it on its own."""
+    path = committed_results_dir().resolve()
+    return path if path.is_dir() else None
 
 
 def _is_root() -> bool:
@@ -377,6 +387,9 @@ def _run(args: list[str], workdir: Workdir, limits: Limits, backend: str, env: d
                 "IPYTHONDIR": str(workdir.path / ".ipython"), "MPLCONFIGDIR": str(workdir.path / ".matplotlib"),
                 "TMPDIR": "/tmp" if backend == "bwrap" else str(workdir.path), "PYTHONDONTWRITEBYTECODE": "1",
                 TOKEN_VAR: token, **(env or {})}
+    results = _results_dir()
+    if results is not None:
+        full_env.setdefault(RESULTS_DIR_ENV, str(results))
     prefix, preexec = _rlimit_prefix(limits)
     runner_args = list(args)
     kw: dict = {}
