@@ -191,6 +191,28 @@ plt.show()
 # The softmax plan (left) lets one cluster take most features and others none; the transport plan
 # spreads one unit of mass to each cluster and sends the leftover to the dustbin (last row).
 #
+# **What does the learned dustbin score $z$ do?** The dustbin row of $\bar S$ is the same number $z$ for
+# every feature. The first $u$ update of Eq. (2) subtracts $\log \sum_i e^{z + v_i}$ from that row, which
+# removes $z$ again, and nothing else reads it: after one iteration the plan no longer depends on $z$, and
+# $z$ gets no gradient through the plan. Measured on the toy matrix:
+
+# %%
+for iters in (1, 3, 100):
+    change = (sinkhorn_by_hand(toy_scores, 0.5, iters) - sinkhorn_by_hand(toy_scores, 5.5, iters)).abs().max().item()
+    print(f"{iters:3d} iterations: largest change of log P when z goes from 0.5 to 5.5: "
+          + ("below 1e-12" if change < 1e-12 else f"{change:.1e}"))
+z_param = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)
+weights = torch.randn(5, 12, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+(sinkhorn(toy_scores[None], z_param, num_iters=3)[0].exp() * weights).sum().backward()
+grad = abs(z_param.grad.item())
+print("gradient of a loss on the 3-iteration plan with respect to z: " + ("below 1e-12" if grad < 1e-12 else f"{grad:.1e}"))
+
+# %% [markdown]
+# Both are zero up to rounding: which features the dustbin takes is decided by the cluster scores
+# alone (a feature that scores low for every cluster goes to the dustbin). A single constant dustbin score,
+# as in Eq. (3) and the published code, is a parameter that does nothing; a per-feature dustbin score
+# (a score head with $m + 1$ outputs) would be needed for the dustbin to learn on its own.
+#
 # ## Build it: SALAD from the plan
 #
 # Given the projected features, scores and token (the MLP heads are plain 1×1 convolutions and linear
@@ -778,8 +800,10 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 # ## Takeaways
 #
 # * Sinkhorn alternates row and column normalisations of $e^{S}$, in log space for stability (Eq. 2); the
-#   columns are exact after each iteration, the rows converge geometrically. The dustbin row with a learned
-#   score lets the transport discard features; it needs more features than clusters ($n > m$).
+#   columns are exact after each iteration, the rows converge geometrically. The dustbin row lets the
+#   transport discard features; it needs more features than clusters ($n > m$). Its single learned score $z$
+#   cancels in the first row update: the plan does not change when $z$ does and $z$ gets a zero gradient
+#   (measured on the toy matrix), so the cluster scores alone decide what the dustbin takes.
 # * SALAD = MLP scores + optimal-transport assignment + MLP features, summed without centroid residuals,
 #   intra-normalised, concatenated with a global token (Eqs. 4-5); `vpr_nb.aggregation.SALAD` computes Eq. (4)
 #   as one batched product and loads the published DINOv2-SALAD aggregator weights by name.

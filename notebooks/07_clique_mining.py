@@ -661,8 +661,9 @@ check("pick_clique_batch", [Case(name, (b, utm_h, t), expect=want) for name, b, 
 # * *Measured reasons.* (1) The clique half's hardest negatives look *more* alike than its positives under
 #   the pretrained descriptors, by a wider margin than in random batches (median cosines, batch-statistics
 #   table): frames 5 m apart at 32 × 48 pixels are nearly the same image. (2) The MS loss treats every image
-#   beyond $\tau$ as an equal negative, so pushing the 5 m neighbours away sharpens the step at $\tau$ (lower
-#   $p(0, 10)$) but flattens the order among negatives (higher $p(5, 10)$, smaller slope): what the loss
+#   beyond $\tau$ as an equal negative, so pushing the 5 m neighbours away can sharpen the step at $\tau$
+#   ($p(0, 10)$ leans lower, but within 2 SE) and flattens the order among negatives (higher $p(5, 10)$,
+#   smaller slope): what the loss
 #   rewards is "same place or not", not the geographic order that GDS measures. (3) The SALAD head starts
 #   collapsed (mean pairwise cosine of the validation descriptors near 1 in the first epoch, printed under the
 #   training cell) and 500 steps are a small budget next to the paper's 8000.

@@ -12,7 +12,8 @@ from vpr_nb.feature_cache import FrozenFeatureCache
 from vpr_nb.losses import DWTripletLoss, MultiSimilarityLoss, TripletLoss
 from vpr_nb.models import build_model, init_salad
 from vpr_nb.pretrain import course_backbone
-from vpr_nb.recipe import RECIPE, Method, Recipe, build_start, fine_tune, lr_search, make_source, place_batch_labels
+from vpr_nb.recipe import (RECIPE, Method, Recipe, build_start, fine_tune, lr_search, make_source, place_batch_labels,
+                           search_methods)
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import History, PlaceBatchSource, TrainConfig, TripletSource, train
 
@@ -204,3 +205,35 @@ def test_place_batches_and_custom_sources(world):
     assert make_source(Method("T", "gem"), tr, RECIPE).batch_size == RECIPE.batch_size
     made = make_source(Method("custom", "gem", batches=lambda split, recipe, loss: HurtingSource(split)), tr)
     assert isinstance(made, HurtingSource)
+
+
+def test_search_methods_gives_the_same_runs_in_one_process_and_in_two(world):
+    tr, va = world
+    recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3,), min_search_seeds=1)
+    sgd = dataclasses.replace(recipe, optimizer="sgd")
+    methods = [Method("GeM", "gem"), (Method("GeM, SGD", "gem"), sgd)]
+    one = search_methods(methods, tr, va, recipe, seeds=(0,))
+    two = search_methods(methods, tr, va, recipe, seeds=(0,), workers=2)
+    assert list(one) == list(two) == ["GeM", "GeM, SGD"]
+    for name in one:
+        a, b = one[name].runs[0], two[name].runs[0]
+        assert a.history.best_recall == b.history.best_recall
+        for (k, x), (_, y) in zip(a.model.state_dict().items(), b.model.state_dict().items()):
+            assert torch.equal(x, y), (name, k)
+    # the SGD row really ran SGD: its weights differ from the Adam row's after the same steps
+    adam, sgd_run = one["GeM"].runs[0].history, one["GeM, SGD"].runs[0].history
+    assert adam.epochs[-1]["loss"] != sgd_run.epochs[-1]["loss"]
+    fixed = search_methods([Method("GeM", "gem")], tr, va, recipe, seeds=(0, 1), lr=3e-4)
+    assert fixed["GeM"].grid == (3e-4,) and set(fixed["GeM"].runs) == {0, 1}
+
+
+def test_search_methods_refuses_bad_arguments(world):
+    tr, va = world
+    with pytest.raises(ValueError, match="distinct names"):
+        search_methods([Method("A", "gem"), Method("A", "max")], tr, va)
+    with pytest.raises(ValueError, match="distinct names"):
+        search_methods([], tr, va)
+    with pytest.raises(ValueError, match="workers"):
+        search_methods([Method("A", "gem")], tr, va, workers=0)
+    with pytest.raises(ValueError, match="recipe"):
+        search_methods([(Method("A", "gem"), "adam")], tr, va)

@@ -279,7 +279,8 @@ def sinkhorn(scores: torch.Tensor, dustbin: torch.Tensor | float, num_iters: int
     receives mass 1, the dustbin the rest) and ``b = [1]*n`` (each feature distributes mass 1). As in
     the published code both marginals are divided by ``n+m`` during the iterations and ``log(n+m)`` is
     added back at the end. Returns the log transport plan ``log P`` ``[B, m+1, n]`` (dustbin last).
-    Needs ``n > m``.
+    Needs ``n > m``. A scalar ``dustbin`` (SALAD's one learned score) cancels in the first row update, so
+    the plan does not depend on it and it gets no gradient (notebook 05 measures both).
     """
     check_tensor(scores, "scores", ndim=3)
     dustbin = _as_scalar_tensor(dustbin, "dustbin")
