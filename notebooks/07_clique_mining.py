@@ -50,6 +50,7 @@ from vpr_nb.gds import gds_profile, misordering_probability, topk_order_agreemen
 from vpr_nb.losses import MultiSimilarityLoss
 from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
+from vpr_nb.probes import near_duplicate_probe
 from vpr_nb.recipe import RECIPE, Method, PlaceBatches, search_methods
 from vpr_nb.report import record
 from vpr_nb.samplers import (CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBatches, batch_statistics,
@@ -320,28 +321,28 @@ plt.show()
 # a few metres away, photographed in the **same season** as the anchor, while the anchor's positive is the
 # query image of its own frame, from **another season**. If the same-season neighbour already looks more alike
 # than the cross-season positive, the batch asks the loss to push apart views that differ less than the
-# positives do. For every training database image and a neighbour $k$ frames away: how often is the neighbour
-# closer (Euclidean distance of the L2-normalised descriptors) than the image's own cross-season positive?
+# positives do. For every training frame and the frame $k$ frames ahead: how often is that same-season
+# neighbour closer (Euclidean distance of the L2-normalised descriptors) than the frame's own cross-season
+# positive (Eq. 2 of `vpr_nb.probes`)?
 
 # %%
-def near_duplicate_share(x, split, frames):
-    # x: descriptors of the split's database then query images; the share of (database image, same-season
-    # database image `frames` frames away) pairs where the neighbour is closer than the cross-season positive
-    n_db = len(split.db_utm)
-    db, q = x[:n_db], x[n_db:]
-    gap, own = cKDTree(split.q_utm).query(split.db_utm)                  # the query image at each frame
-    step = frames * SPACING
-    pairs = cKDTree(split.db_utm).query_pairs(step + 0.01, output_type="ndarray")
-    pairs = pairs[np.linalg.norm(split.db_utm[pairs[:, 0]] - split.db_utm[pairs[:, 1]], axis=1) > step - 0.01]
-    a, b = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
-    keep = gap[a] <= split.pos_radius
-    a, b = a[keep], b[keep]
-    return float(np.mean(np.linalg.norm(db[a] - db[b], axis=1) < np.linalg.norm(db[a] - q[own[a]], axis=1)))
+def near_duplicates_by_hand(db, q, utm, frames):
+    # frame i (database: one season; query: the other, same geotag) and the database frame i + k:
+    # how often is that same-season neighbour closer than frame i's cross-season positive?
+    i = np.arange(len(utm) - frames)
+    i = i[np.abs(np.linalg.norm(utm[i + frames] - utm[i], axis=1) - frames * SPACING) < 0.25 * SPACING]
+    return float(np.mean(np.linalg.norm(db[i] - db[i + frames], axis=1) < np.linalg.norm(db[i] - q[i], axis=1)))
 
+n_db = len(tr.db_images)
 NEAR_DUP = {}
-for name, x in (("raw pixels", raw_pixel_descriptors(route["images"])), ("frozen backbone + GeM", image_desc["route"])):
-    NEAR_DUP[name] = {f"{k} frame(s) = {k * SPACING:.1f} m": near_duplicate_share(x, tr, k) for k in (1, 2, 4)}
-print("share of training images whose same-season neighbour is closer than their cross-season positive")
+for name, x, model in (("raw pixels", raw_pixel_descriptors(route["images"]), None),
+                       ("frozen backbone + GeM", image_desc["route"], frozen)):
+    mine = {k: near_duplicates_by_hand(x[:n_db], x[n_db:], tr.db_utm, k) for k in (1, 2, 4)}
+    lib = near_duplicate_probe(tr, model, steps=[k * SPACING for k in (1, 2, 4)])
+    assert np.allclose(list(mine.values()), list(lib.values())), (mine, lib)
+    NEAR_DUP[name] = {f"{k * SPACING:.1f} m": v for k, v in mine.items()}
+print("share of training frames whose same-season neighbour is closer than their cross-season positive "
+      "(by hand == vpr_nb.probes.near_duplicate_probe)")
 for name, shares in NEAR_DUP.items():
     print(f"{name:>24}: " + "   ".join(f"{k}: {v:.3f}" for k, v in shares.items()))
 
