@@ -36,9 +36,11 @@
 # * pick a query with a widget and look at its top-k with their true distances.
 
 # %% tags=["parameters", "grade-deps:ex-06-misorder-empirical"]
-PROFILE = "ci"  # "ci": 1 fine-tuning seed, short budget (what CI checks); "reproduce": 5 seeds, full budget
+PROFILE = "ci"  # "ci": 1 fine-tuning seed, 2 epochs (what CI checks); "reproduce": 5 seeds, lr search, full budget
 
 # %% tags=["grade-deps:ex-06-misorder-empirical"]
+import dataclasses
+import math
 import time
 
 import matplotlib.pyplot as plt
@@ -52,33 +54,31 @@ from vpr_nb.gds import gds_profile, misordering_matrix, misordering_probability,
 from vpr_nb.losses import MultiSimilarityLoss, TripletLoss
 from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
+from vpr_nb.recipe import RECIPE, Method, search_methods
 from vpr_nb.report import record
-from vpr_nb.samplers import random_place_batches
 from vpr_nb.synthetic import make_dataset
-from vpr_nb.training import PlaceBatchSource, TrainConfig, TripletSource, train
 
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
 SPACING = 5.0                # route frame spacing (m)
+METHODS = [Method("fine-tuned, triplets", "gem", TripletLoss(margin=RECIPE.margin)),   # negatives beyond 5 m
+           Method("fine-tuned, MS 25 m places", "gem", MultiSimilarityLoss(), batches="places")]
 EXPERIMENT = {               # every setting of the reproduce-profile experiment
     "world": {"preset": "route", "seed": 0, "size": "tiny", "eval split": "test"},
-    "backbone": "course_backbone(trainable_blocks=1) + GeM",
+    "recipe": "the course recipe; place batches per epoch = triplet steps per epoch (set below)",
+    "methods": [m.to_dict() for m in METHODS],
+    "place": "the route's place groups: 5 consecutive frames (25 m)",
     "seeds": [0, 1, 2, 3, 4],                     # fine-tuning seeds (the world is the same)
-    "triplet": {"epochs": 6, "optimizer": "adam", "lr": 1e-3, "weight_decay": 0.0, "batch_size": 16,
-                "num_negatives": 5, "num_candidates": 300, "margin": 0.1, "neg_radius": "pos_radius (5 m)",
-                "restore_best": True},
-    "ms": {"epochs": 6, "optimizer": "adam", "lr": 1e-4, "weight_decay": 0.0, "places_per_batch": 16,
-           "images_per_place": 4, "batches_per_epoch": 10, "place": "5 frames (25 m)", "restore_best": True},
+    "lr chosen": "mean validation R@1 over the seeds",
     "bins": {"width_m": 0.96 * SPACING, "num": 12, "fit_m": [0.0, 30.0]},
     "topk": 5,
 }
-RUN = vpr_nb.notebook.budget(PROFILE, reproduce=EXPERIMENT, ci={
-    **EXPERIMENT, "seeds": [0], "triplet": {**EXPERIMENT["triplet"], "epochs": 1},
-    "ms": {**EXPERIMENT["ms"], "epochs": 2}})
+RUN = vpr_nb.notebook.budget(PROFILE, reproduce={"seeds": EXPERIMENT["seeds"], "max_epochs": RECIPE.max_epochs, "search": True},
+                             ci={"seeds": [0], "max_epochs": 2, "search": False})
 BIN = EXPERIMENT["bins"]["width_m"]   # bin k = [4.8 k, 4.8 (k+1)) holds exactly the pairs k frames apart
 NBINS = EXPERIMENT["bins"]["num"]     # frames 0..11 apart, i.e. 0..55 m
 FIT = tuple(EXPERIMENT["bins"]["fit_m"])   # the slope is fitted over the first 30 m
-print(f"profile {PROFILE}: fine-tuning seeds {RUN['seeds']}, triplets {RUN['triplet']['epochs']} epochs, "
-      f"MS {RUN['ms']['epochs']} epochs; bins of {BIN:.1f} m up to {NBINS * BIN:.1f} m")
+print(f"profile {PROFILE}: fine-tuning seeds {RUN['seeds']}, at most {RUN['max_epochs']} epochs per arm; "
+      f"bins of {BIN:.1f} m up to {NBINS * BIN:.1f} m")
 
 # %% [markdown]
 # ## Theory
@@ -155,6 +155,12 @@ print(f"generated in {time.perf_counter() - t0:.1f} s")
 # %%
 te, tr = ds.test, ds.train
 print(tr, te, sep="\n")
+# the course recipe with one deviation: an epoch of place batches has as many steps as an epoch of triplet
+# batches (one per 16 training queries), so the two arms get the same budget per epoch and the same cap
+STEPS_PER_EPOCH = math.ceil(len(tr.q_images) / RECIPE.batch_size)
+R06 = dataclasses.replace(RECIPE, place_batches_per_epoch=STEPS_PER_EPOCH)
+EXPERIMENT["recipe"] = R06.to_dict()
+print(f"both arms: {STEPS_PER_EPOCH} steps per epoch, at most {R06.max_epochs} epochs, patience {R06.patience}")
 desc = {"raw pixels": {"db": raw_pixel_descriptors(te.db_images), "q": raw_pixel_descriptors(te.q_images)}}
 frozen = build_model(course_backbone(trainable_blocks=0), "gem")
 desc["frozen backbone"] = {"db": compute_descriptors(frozen, te.db_images), "q": compute_descriptors(frozen, te.q_images)}
@@ -203,43 +209,27 @@ print(f"frozen backbone: p(0 m, 10 m) = {p_mis_by_hand(mu, sd, 0, 2):.3f}, slope
 # %% [markdown]
 # ## Experiment: raw pixels, frozen, fine-tuned
 #
-# Both fine-tuning recipes start from `course_backbone(trainable_blocks=1)` + GeM (only the final 1×1
-# projection trains, Adam, best validation R@1 kept):
+# Both arms follow the course recipe (`vpr_nb.recipe`): the course backbone with its last block trainable +
+# GeM, Adam, the starting weights as the epoch-0 candidate, training until validation Recall@1 has not
+# improved for 4 epochs, and each arm's learning rate chosen on validation from the recipe's grid (the mean
+# over the 5 seeds: the route's validation split is too small to choose on one). The two arms differ only in
+# their batches, and get the **same number of steps per epoch** (the one deviation from the recipe, set above):
 #
-# * **triplets** (`TripletSource`, NetVLAD-style mining, margin 0.1): positives within the training radius,
-#   5 hardest negatives among random candidates *beyond the 5 m positive radius*, i.e. frames from 10 m on.
-#   The loss sees exactly the comparison of Eq. (5): the positive must beat an image 10 m away;
-# * **Multi-Similarity loss over places** (`PlaceBatchSource`, 16 places × 4 images, the GSV-Cities recipe
-#   and the baseline of notebook 07), with the route's places of 5 consecutive frames (25 m): every image
-#   of a place counts as a positive, so the loss asks images 20 m apart to look *alike*.
+# * **triplets** (`TripletSource`, NetVLAD-style mining, margin 0.1, 16 queries per step): positives within
+#   the training radius, 5 hardest negatives among random candidates *beyond the 5 m positive radius*, i.e.
+#   frames from 10 m on. The loss sees exactly the comparison of Eq. (5): the positive must beat an image
+#   10 m away;
+# * **Multi-Similarity loss over places** (`PlaceBatchSource`, 32 places × 4 images, the GSV-Cities recipe and
+#   the baseline of notebook 07), with the route's places of 5 consecutive frames (25 m): every image of a
+#   place counts as a positive, so the loss asks images 20 m apart to look *alike*.
 #
 # For each model the table gives, first, the mis-ordering probabilities (Eq. 3) and the top-5 order
 # agreement (`topk_order_agreement`: the fraction of retrieval pairs in the right geographic order,
 # 0.5 = random, and Kendall's $\tau$); then the slope (per 10 m) and the standardised gap of Eq. (4); then
-# the Eq. (5) cap and Recall@N. The live run below is the CI profile (one seed, short budget); the
-# committed reproduce profile (5 fine-tuning seeds, full budget) follows it.
+# the Eq. (5) cap and Recall@N. The live run below is the CI profile (one seed, 2 epochs at the recipe's
+# default lr); the committed reproduce profile (5 fine-tuning seeds, lr search, full budget) follows it.
 
 # %%
-images = np.concatenate([tr.db_images, tr.q_images])
-places = np.concatenate([tr.db_place, tr.q_place])          # place ids: 5 consecutive frames (25 m)
-
-def finetune(recipe, seed, run):
-    # the course backbone with its last block trainable + GeM, fine-tuned with `recipe` on the train split
-    h = run[recipe]
-    vpr_nb.seed_everything(seed)
-    model = build_model(course_backbone(trainable_blocks=1), "gem")
-    if recipe == "triplet":
-        source = TripletSource(tr, TripletLoss(margin=h["margin"]), batch_size=h["batch_size"],
-                               num_negatives=h["num_negatives"], num_candidates=h["num_candidates"])   # neg_radius = pos_radius
-    else:
-        source = PlaceBatchSource(images, lambda _m, _e, rng: random_place_batches(
-            places, h["places_per_batch"], h["images_per_place"], num_batches=h["batches_per_epoch"], seed=rng),
-            loss=MultiSimilarityLoss())
-    cfg = TrainConfig(epochs=h["epochs"], optimizer=h["optimizer"], lr=h["lr"], weight_decay=h["weight_decay"],
-                      seed=seed, restore_best=h["restore_best"], ns=(1, 5))
-    history = train(model, source, ds.val, cfg, progress=False)
-    return model, history
-
 def descriptors(model):
     return {"db": compute_descriptors(model, te.db_images), "q": compute_descriptors(model, te.q_images)}
 
@@ -257,13 +247,19 @@ def gds_row(d):
             "slope per 10 m, Eq.2": 10 * prof.slope, "gap 10 m / sigma, Eq.4": 10 * prof.slope / sigma,
             "R@1 cap, Eq.5": (1 - p010) ** 2, "R@1": rec[1], "R@5": rec[5], "R@10": rec[10]}
 
-RECIPES = {"triplet": "fine-tuned, triplets", "ms": "fine-tuned, MS 25 m places"}
+def fine_tune_arms(seeds, max_epochs, search, workers=1):
+    recipe = dataclasses.replace(R06, max_epochs=max_epochs)
+    return search_methods(METHODS, tr, ds.val, recipe, seeds, lr=None if search else recipe.lr, workers=workers)
+
+TRI, MS = (m.name for m in METHODS)
 t0 = time.perf_counter()
-models, histories = {}, {}
-for recipe, label in RECIPES.items():
-    models[label], histories[label] = finetune(recipe, RUN["seeds"][0], RUN)
-    desc[label] = descriptors(models[label])
-    print(f"{label}: validation R@1 per epoch", [round(r, 3) for r in histories[label].recalls(1)])
+searches = fine_tune_arms(RUN["seeds"][:1], RUN["max_epochs"], search=False)
+models = {name: s.runs[RUN["seeds"][0]].model for name, s in searches.items()}
+for name, s in searches.items():
+    desc[name] = descriptors(models[name])
+    h = s.runs[RUN["seeds"][0]].history
+    print(f"{name}: validation R@1 of the start {h.initial['val'][1]:.3f}, per epoch",
+          [round(r, 3) for r in h.recalls(1)])
 train_seconds = time.perf_counter() - t0
 profiles = {name: profile_of(d) for name, d in desc.items()}
 live = {name: gds_row(d) for name, d in desc.items()}
@@ -291,23 +287,24 @@ def show_table(rows, title):
 
 fmt = {name: {k: f"{v:.3f}" for k, v in r.items()} for name, r in with_eq4(live).items()}
 show_table(fmt, f"live, CI profile: route test split, fine-tuning seed {RUN['seeds'][0]}, "
-                f"triplets {RUN['triplet']['epochs']} epoch(s), MS {RUN['ms']['epochs']} epochs")
+                f"at most {RUN['max_epochs']} epochs at lr {R06.lr:g}")
 
 # %%
 if PROFILE == "reproduce":
-    per_seed = {label: [] for label in RECIPES.values()}
     t_rep = time.perf_counter()
-    for seed in EXPERIMENT["seeds"]:
-        for recipe, label in RECIPES.items():
-            if seed == RUN["seeds"][0]:          # the live run above is this seed at the full budget
-                per_seed[label].append(live[label])
-                continue
-            model, _ = finetune(recipe, seed, EXPERIMENT)
-            per_seed[label].append(gds_row(descriptors(model)))
+    full = fine_tune_arms(EXPERIMENT["seeds"], R06.max_epochs, search=True, workers=2)
+    per_seed = {name: [gds_row(descriptors(s.runs[seed].model)) for seed in EXPERIMENT["seeds"]]
+                for name, s in full.items()}
     results.save("06_gds", EXPERIMENT, {
         "fixed": {name: live[name] for name in ("raw pixels", "frozen backbone")},
-        "per seed": {label: {k: [r[k] for r in rows] for k in rows[0]} for label, rows in per_seed.items()},
-        "seconds": round(train_seconds + time.perf_counter() - t_rep, 1)})
+        "per seed": {name: {k: [r[k] for r in rows] for k in rows[0]} for name, rows in per_seed.items()},
+        "lr": {name: s.lr for name, s in full.items()},
+        "val R@1 per lr": {name: {f"{lr:g}": [round(v, 4) for v in vals] for lr, vals in s.val_recall.items()}
+                           for name, s in full.items()},
+        "best epoch": {name: [s.runs[seed].best_epoch for seed in EXPERIMENT["seeds"]] for name, s in full.items()},
+        "steps": {name: [s.runs[seed].epochs_run * STEPS_PER_EPOCH for seed in EXPERIMENT["seeds"]]
+                  for name, s in full.items()},
+        "seconds": round(time.perf_counter() - t_rep, 1)})
 
 committed = results.load("06_gds", EXPERIMENT)
 st, res = committed["stamp"], committed["results"]
@@ -317,32 +314,48 @@ for label, cols in with_eq4(res["per seed"]).items():
     cells[label] = {k: "{:.3f} ± {:.3f}".format(*results.mean_std(v)) for k, v in cols.items()}
 show_table(cells, f"reproduce profile, {len(seeds)} seeds (notebooks/results/06_gds.json, commit "
                   f"{st['git commit']}, date {st['date']}); fine-tuned: mean ± std over seeds {seeds}")
+for name in (TRI, MS):
+    per_lr = "  ".join(f"{lr}: {np.mean(v):.3f}" for lr, v in res["val R@1 per lr"][name].items())
+    print(f"{name}: lr {res['lr'][name]:g} chosen (mean val R@1 per lr: {per_lr}); best epoch per seed "
+          f"{res['best epoch'][name]}; steps run per seed {res['steps'][name]}")
 
 
 # %% [markdown]
 # **Verdicts.** Raw pixels and the frozen backbone are deterministic (one number each), so the paired
 # difference of a fine-tuned model against them is the per-seed difference to a constant; a verdict is given
-# only when its mean exceeds 2 standard errors (lower $p$ is better, higher recall is better).
+# only when its mean exceeds 2 standard errors (lower $p$ is better, higher recall is better). First the
+# controls: does each arm beat its own starting point, the frozen backbone, on R@1? The comparison of the two
+# arms is made only when the baseline arm (MS) passes its control (`vpr_nb.results.control_gate`).
 
 # %%
+def values(name, metric):
+    return res["per seed"][name][metric] if name in res["per seed"] else [res["fixed"][name][metric]] * len(seeds)
+
 def verdict(metric, a, b, lower_is_better=False):
-    av = res["per seed"][a][metric] if a in res["per seed"] else [res["fixed"][a][metric]] * len(seeds)
-    bv = res["per seed"][b][metric] if b in res["per seed"] else [res["fixed"][b][metric]] * len(seeds)
-    m, sd = results.mean_std([x - y for x, y in zip(av, bv)])
-    se = sd / np.sqrt(len(av))
+    m, sd = results.mean_std([x - y for x, y in zip(values(a, metric), values(b, metric))])
+    se = sd / np.sqrt(len(seeds))
     if abs(m) <= 2 * se:
         return f"{metric:>20}: {a} − {b} = {m:+.3f} ± {se:.3f} (SE): within 2 SE, no verdict"
     better = a if (m < 0) == lower_is_better else b
     return f"{metric:>20}: {a} − {b} = {m:+.3f} ± {se:.3f} (SE): {better} is better"
 
-TRI, MS = RECIPES["triplet"], RECIPES["ms"]
-for a, b in ((TRI, "raw pixels"), (TRI, "frozen backbone"), (MS, "raw pixels"), (MS, "frozen backbone"), (TRI, MS)):
+controls = {name: results.control_gate(values(name, "R@1"), res["fixed"]["frozen backbone"]["R@1"], name,
+                                       "frozen backbone") for name in (TRI, MS)}
+for name, (passed, text) in controls.items():
+    print(f"control: {text}: " + ("passes" if passed else "fails"))
+for a, b in ((TRI, "raw pixels"), (TRI, "frozen backbone"), (MS, "raw pixels"), (MS, "frozen backbone")):
     print(verdict("p(0,10 m) Eq.3", a, b, lower_is_better=True))
     print(verdict("top-5 pairs in order", a, b))
     print(verdict("R@1", a, b))
+if controls[MS][0]:
+    print(verdict("p(0,10 m) Eq.3", TRI, MS, lower_is_better=True))
+    print(verdict("top-5 pairs in order", TRI, MS))
+    print(verdict("R@1", TRI, MS))
+else:
+    print(f"{TRI} vs {MS}: inconclusive: the baseline does not improve on its starting point ({controls[MS][1]})")
 
 # %%
-order = ["raw pixels", "frozen backbone", RECIPES["ms"], RECIPES["triplet"]]
+order = ["raw pixels", "frozen backbone", MS, TRI]
 fig, axes = plt.subplots(1, 3, figsize=(16, 3.8))
 for name in order:
     profiles[name].plot(axes[0], label=f"{name} (slope {10 * profiles[name].slope:.3f}/10 m)")
@@ -363,7 +376,7 @@ axes[1].set(xlabel="$d_2$ (m)", ylabel="$p(0, d_2)$", ylim=(0, 0.55),
             title="P(image $d_2$ m away beats the 0 m one), Eq. (3)")
 axes[1].legend(fontsize=7)
 grid = np.arange(0, 55, 5.0)
-im = axes[2].imshow(misordering_matrix(profiles[RECIPES["triplet"]], grid), vmin=0, vmax=1, cmap="coolwarm")
+im = axes[2].imshow(misordering_matrix(profiles[TRI], grid), vmin=0, vmax=1, cmap="coolwarm")
 axes[2].set_xticks(range(len(grid)), [f"{v:.0f}" for v in grid], fontsize=7)
 axes[2].set_yticks(range(len(grid)), [f"{v:.0f}" for v in grid], fontsize=7)
 axes[2].set(xlabel="$d_2$ (m)", ylabel="$d_1$ (m)", title="fine-tuned (triplets): $P(D(d_2) < D(d_1))$")
@@ -408,7 +421,7 @@ plt.show()
 # true distances; the widget only calls it and draws the images.
 
 # %%
-def show_query(query, k=5, model=RECIPES["triplet"]):
+def show_query(query, k=5, model=TRI):
     d = desc[model]
     res_q = query_topk(d["q"], d["db"], te.q_utm, te.db_utm, query, k=k, pos_radius=te.pos_radius)
     print(res_q.table())
@@ -416,7 +429,7 @@ def show_query(query, k=5, model=RECIPES["triplet"]):
     plots.image_grid(np.concatenate([te.q_images[[query]], te.db_images[res_q.db_index]]), titles, ncols=k + 1)
     plt.show()
 
-dt = desc[RECIPES["triplet"]]
+dt = desc[TRI]
 geo_top1 = np.array([query_topk(dt["q"], dt["db"], te.q_utm, te.db_utm, q, k=1).geo_distance[0]
                      for q in range(len(te.q_images))])
 close = np.flatnonzero((geo_top1 > te.pos_radius) & (geo_top1 <= 20.0))      # close, but not there

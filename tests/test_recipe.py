@@ -237,3 +237,22 @@ def test_search_methods_refuses_bad_arguments(world):
         search_methods([Method("A", "gem")], tr, va, workers=0)
     with pytest.raises(ValueError, match="recipe"):
         search_methods([(Method("A", "gem"), "adam")], tr, va)
+
+
+def test_place_batches_of_package_samplers_train_in_worker_processes(world):
+    from vpr_nb.recipe import PlaceBatches
+    from vpr_nb.samplers import MixedPlaceBatches, RandomPlaceBatches
+
+    tr, va = world
+    labels = place_batch_labels(tr)
+    images = np.concatenate([tr.db_images, tr.q_images])
+    half = RandomPlaceBatches(labels, 4, 4, 2, each_place_once=False)
+    make = MixedPlaceBatches([half, half], [0, 0])
+    methods = [Method(name, "gem", MultiSimilarityLoss(), batches=PlaceBatches(name, images, make, (4, 4)))
+               for name in ("two halves", "two halves again")]
+    assert methods[0].to_dict()["batches"] == "two halves"
+    recipe = dataclasses.replace(FAST, max_epochs=1)
+    one = search_methods(methods, tr, va, recipe, seeds=(0,), lr=1e-3)
+    two = search_methods(methods, tr, va, recipe, seeds=(0,), lr=1e-3, workers=2)
+    for name in one:
+        assert one[name].runs[0].history.epochs[0]["loss"] == two[name].runs[0].history.epochs[0]["loss"]

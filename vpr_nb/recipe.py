@@ -212,7 +212,8 @@ class Method:
         """The method as plain data (for a notebook's ``EXPERIMENT`` config)."""
         loss = None if self.loss is None else {"class": type(self.loss).__name__, **(
             asdict(self.loss) if hasattr(self.loss, "__dataclass_fields__") else {})}
-        batches = self.batches if isinstance(self.batches, str) else getattr(self.batches, "__name__", "custom")
+        batches = self.batches if isinstance(self.batches, str) else (
+            getattr(self.batches, "name", None) or getattr(self.batches, "__name__", "custom"))
         return {"name": self.name, "aggregator": self.aggregator, "loss": loss, "batches": batches,
                 "aggregator_kwargs": dict(self.aggregator_kwargs), "trainable_blocks": self.trainable_blocks,
                 "paper_lr": self.paper_lr}
@@ -297,6 +298,23 @@ def make_source(method: Method, train_split, recipe: Recipe = RECIPE):
                                     num_batches=recipe.place_batches_per_epoch, seed=rng)
 
     return PlaceBatchSource(images, batches, loss=method.loss or L.MultiSimilarityLoss())
+
+
+@dataclass(eq=False)
+class PlaceBatches:
+    """A :class:`Method`'s ``batches`` for place batches the recipe does not build itself: ``make_batches(model,
+    epoch, rng)`` (e.g. :class:`vpr_nb.samplers.MixedPlaceBatches` of random and clique halves) over ``images``,
+    with one loss per part of ``loss_groups`` (CliqueMining's two-loss step). Picklable when ``make_batches``
+    is (the package's samplers are), so :func:`search_methods` can run it in worker processes."""
+
+    name: str
+    images: np.ndarray
+    make_batches: Callable
+    loss_groups: tuple[int, ...] | None = None
+
+    def __call__(self, train_split, recipe, loss):
+        return PlaceBatchSource(self.images, self.make_batches, loss=loss or L.MultiSimilarityLoss(),
+                                loss_groups=self.loss_groups)
 
 
 @dataclass
