@@ -230,6 +230,7 @@ print(f"frozen backbone: p(0 m, 10 m) = {p_mis_by_hand(mu, sd, 0, 2):.3f}, slope
 # default lr); the committed reproduce profile (5 fine-tuning seeds, lr search, full budget) follows it.
 
 # %%
+# NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
 def descriptors(model):
     return {"db": compute_descriptors(model, te.db_images), "q": compute_descriptors(model, te.q_images)}
 
@@ -270,6 +271,7 @@ print(f"fine-tuning took {train_seconds:.1f} s")
 
 
 # %%
+# NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
 def with_eq4(rows):
     # add the Eq. (4) prediction of p(0, 10 m) from the standardised gap, after the gap row
     out = {}
@@ -355,6 +357,7 @@ else:
     print(f"{TRI} vs {MS}: inconclusive: the baseline does not improve on its starting point ({controls[MS][1]})")
 
 # %%
+# NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
 order = ["raw pixels", "frozen backbone", MS, TRI]
 fig, axes = plt.subplots(1, 3, figsize=(16, 3.8))
 for name in order:
@@ -392,21 +395,25 @@ plt.show()
 # triplet-fine-tuned model (right; red: the farther image usually wins).
 
 # %% [markdown]
-# **Reading the numbers** (the committed reproduce-profile table, its verdict lines and the printed
-# curves; the live CI-profile table shows the same ordering on one seed with a shorter budget).
+# **Reading the numbers** (the committed reproduce-profile table, its controls and verdict lines, and the
+# printed curves; the live CI-profile table is one seed after 2 epochs at the recipe's default lr).
 #
-# * *Mis-ordering first.* Fine-tuning with triplets whose negatives start 10 m away cuts $p(0, 10)$ to well
-#   under half of both references and puts more of the top-5 in geographic order (verdict lines). In the
-#   committed runs its R@1 sits at the cap of Eq. (5) (the two rows agree within their spread), so ordering
-#   neighbouring frames is what bounds it there. The one-epoch CI model is not there yet: most of its wrong
-#   top-1 results are far away (the near-miss count printed below is a small part of its errors). $p(5, 10)$, a
-#   positive 5 m away against a negative 10 m away, stays far from 0, and R@5 and R@10 are far above R@1:
-#   the retrieval is *close*, and the first result is often *not there*. Raw pixels and the frozen backbone
-#   stay below their caps: they also lose queries to far-away places.
-# * *The batches decide.* The Multi-Similarity fine-tuning over 25 m places beats raw pixels on R@1 and the
-#   frozen backbone by a little, yet it moves $p(0, 10)$ by less than 0.01 (its verdict lines): a loss that
-#   treats images 20 m apart as the same place has no reason to order them. This is the gap CliqueMining
-#   (notebook 07) attacks by building batches of places that are near each other and look alike.
+# * *Equal budgets.* Both arms had the same budget (34 steps an epoch, at most 24 epochs, the same stopping
+#   rule) and their own learning rate chosen on validation (both chose 3e-3, the top of the grid; the printed
+#   validation R@1 per lr). The Multi-Similarity arm's validation R@1 stops improving after its first epoch
+#   (best epoch 0–1, so 136–170 steps run), the triplet arm's after 3–12 epochs: the MS arm ended because
+#   more steps did not help it, not for lack of them. Both pass their control against the frozen backbone.
+# * *Mis-ordering first.* Fine-tuning with triplets whose negatives start 10 m away cuts $p(0, 10)$ to under a
+#   third of both references and puts more of the top-5 in geographic order (verdict lines). In the committed
+#   runs its R@1 sits just below the cap of Eq. (5), so ordering neighbouring frames is what bounds it there.
+#   $p(5, 10)$, a positive 5 m away against a negative 10 m away, stays far from 0, and R@5 and R@10 are far
+#   above R@1: the retrieval is *close*, and the first result is often *not there*. Raw pixels and the frozen
+#   backbone stay further below their caps: they also lose queries to far-away places.
+# * *The batches decide.* The Multi-Similarity fine-tuning over 25 m places beats raw pixels and the frozen
+#   backbone on R@1, but lowers $p(0, 10)$ by only about 0.02 (its verdict lines), a tenth of what the triplet
+#   arm achieves: a loss that treats images 20 m apart as the same place has little reason to order them. This
+#   is the gap CliqueMining (notebook 07) attacks by building batches of places that are near each other and
+#   look alike.
 # * *The slope is neither scale-free nor linear.* Raw pixels have a slope several times smaller than the
 #   frozen backbone's, yet the same $p(0, 10)$. The printed bin means show why: the raw-pixel distance rises
 #   from 0 to 5 m and then stays flat, while the frozen backbone's keeps rising up to 30 m, so at 20–30 m it
@@ -421,6 +428,7 @@ plt.show()
 # true distances; the widget only calls it and draws the images.
 
 # %%
+# NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
 def show_query(query, k=5, model=TRI):
     d = desc[model]
     res_q = query_topk(d["q"], d["db"], te.q_utm, te.db_utm, query, k=k, pos_radius=te.pos_radius)
@@ -619,12 +627,13 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 #   frozen backbone. Profiles are curved, so even the standardised straight line of Eq. (4) misjudges $p$ for
 #   every model (committed table).
 # * On densely sampled data *ordering* nearby frames bounds Recall@1: with positives one frame wide,
-#   $p(0, 10)$ caps R@1 near $(1-p)^2$, Eq. (5); the committed triplet-fine-tuned models' R@1 sits at that cap,
-#   with R@5 far above it. A model far below its cap (raw pixels, the frozen backbone, the one-epoch CI model,
-#   whose wrong top-1s are mostly not near misses) still loses queries to far-away places first.
-# * What the loss compares decides the sensitivity: triplets with negatives 10 m away cut $p(0, 10)$ to well
-#   under half; Multi-Similarity batches of 25 m places raise R@1 a little but barely move $p(0, 10)$
-#   (verdict lines). CliqueMining (notebook 07) changes the batches to push on exactly this.
+#   $p(0, 10)$ caps R@1 near $(1-p)^2$, Eq. (5); the committed triplet-fine-tuned models' R@1 sits just below
+#   that cap, with R@5 far above it. Raw pixels and the frozen backbone, further below their caps, still lose
+#   queries to far-away places.
+# * What the loss compares decides the sensitivity: at the same budget and each arm's own learning rate,
+#   triplets with negatives 10 m away cut $p(0, 10)$ to under a third; Multi-Similarity batches of 25 m places
+#   raise R@1 a little and move $p(0, 10)$ by about 0.02 (verdict lines). CliqueMining (notebook 07) changes
+#   the batches to push on exactly this.
 
 # %% [markdown]
 # ## Self-check
