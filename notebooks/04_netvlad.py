@@ -459,7 +459,10 @@ print(f"(the committed run took {res['seconds'] / 60:.1f} min wall time, torch o
 
 # %% [markdown]
 # **Verdicts** (paired by seed: same world, same mining randomness; a difference counts only beyond 2 standard
-# errors, `vpr_nb.results.paired_verdict`; an untrained reference is one number, repeated for every seed):
+# errors, `vpr_nb.results.paired_verdict`; an untrained reference is one number, repeated for every seed).
+# A comparison against a fine-tuned row is made only when that baseline beats its own starting point by more
+# than 2 SE (`vpr_nb.results.gated_verdict`); a comparison against an untrained reference is itself such a
+# control:
 
 # %%
 def r1(name):
@@ -471,7 +474,17 @@ def r1(name):
 PAIRS = [("NetVLAD", "GeM"), ("NetVLAD", "NetVLAD, frozen backbone"), ("GeM", "frozen backbone + GeM"),
          ("NetVLAD", "NetVLAD k-means init, before the ReLU"),
          ("NetVLAD, frozen backbone", "NetVLAD k-means init, before the ReLU")]
-verdicts = {f"{a} vs {b}": results.paired_verdict(r1(a), r1(b), a, b) for a, b in PAIRS}
+START = {"GeM": "frozen backbone + GeM", "NetVLAD": "NetVLAD k-means init, before the ReLU",
+         "NetVLAD, frozen backbone": "NetVLAD k-means init, before the ReLU"}   # each fine-tune's starting point
+
+
+def verdict(a, b):
+    if b in START:                        # a fine-tuned baseline: only if it beats its own start
+        return results.gated_verdict(r1(a), r1(b), r1(START[b]), a, b, START[b])
+    return results.paired_verdict(r1(a), r1(b), a, b)
+
+
+verdicts = {f"{a} vs {b}": verdict(a, b) for a, b in PAIRS}
 for v in verdicts.values():
     print("R@1:", v)
 

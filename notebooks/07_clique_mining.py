@@ -27,10 +27,13 @@
 #   clique graph, here with a heading test) and check the invariants of `vpr_nb.samplers.clique_batches`;
 # * measure what the batches contain: how far apart and how alike their places are, against random-place
 #   batches with the *same* place definition (the GSV-Cities baseline);
-# * run the paper's protocol at course scale: the pretrained course backbone (last block trainable) + SALAD +
-#   MS loss, each step half random places and half clique places, on a `route` world tuned so that most
-#   failures are near misses; and compare the samplers first by the **mis-ordering probability** at small
-#   distances and the top-k order (notebook 06), then by Recall@1, on 5 paired seeds.
+# * probe, before any training, how often a clique batch's nearest negative (the same-season frame a few
+#   metres ahead) already looks more alike than the positive;
+# * run the paper's comparison at course scale: the pretrained course backbone (last block trainable) + SALAD +
+#   MS loss, one loss per half-batch, trained on sparse city places only, on sparse + dense route places
+#   drawn at random, and on sparse + dense route *cliques*, on a `route` world tuned so that most failures are
+#   near misses; compare them by Recall@1 at ±1/±2/±4 frames, the **mis-ordering probability** at small
+#   distances and the top-k order (notebook 06), on 5 paired seeds, behind a control that must work.
 
 # %% tags=["parameters", "grade-deps:ex-07-close-pairs"]
 PROFILE = "ci"  # "ci": 1 seed, one epoch per arm (what CI checks); "reproduce": 5 paired seeds, until validation plateaus

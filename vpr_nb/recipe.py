@@ -442,12 +442,12 @@ def fine_tune(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
     return _run(method, train_split, val_split, recipe, seed, lr, cache, progress)
 
 
-
 def _search_one(args):
     method, train_split, val_split, recipe, seeds, lr = args
     if lr is None:
         return lr_search(method, train_split, val_split, recipe, seeds)
-    runs = {s: fine_tune(method, train_split, val_split, recipe, s, lr=lr) for s in seeds}
+    cache = FrozenFeatureCache(recipe.cache_dtype) if recipe.frozen_cache else None    # one for all seeds
+    runs = {s: fine_tune(method, train_split, val_split, recipe, s, lr=lr, cache=cache) for s in seeds}
     return LRSearch(method.name, float(lr), (float(lr),), tuple(seeds), len(val_split.q_images),
                     {float(lr): [r.history.best_recall for r in runs.values()]}, runs,
                     {float(lr): {s: r.history for s, r in runs.items()}})
