@@ -719,10 +719,10 @@ check("zero_image_descriptor", [Case(f"{k} random centroids of dimension {d}", (
 #   the ReLU (untrained table). Exactly-zero features also have no direction for k-means; `init_netvlad`
 #   skips them. NetVLAD's public code reads VGG16's conv5_3 before its ReLU too.
 # * Fine-tuned with the same triplets, optimiser, epochs and seeds, **GeM beats NetVLAD on this world** (the
-#   committed table and its paired verdict). GeM gains the most from fine-tuning; NetVLAD ends only a little
-#   above its k-means initialisation, and training the backbone's last block adds nothing over training the
-#   layer alone (verdicts). Its 16× larger descriptor does not turn into
-#   recall with 554 training queries. Two caveats for reading this against the paper: the course backbone was
+#   committed table and its paired verdict). GeM gains the most from fine-tuning; NetVLAD ends a few points
+#   above its k-means initialisation, and training the backbone's last block adds a little over training the
+#   layer alone (verdicts). Its 16× larger descriptor does not turn into more recall than GeM's with 554
+#   training queries. Two caveats for reading this against the paper: the course backbone was
 #   pretrained with GeM pooling, and the NetVLAD paper compared against max and average pooling of an
 #   ImageNet VGG16 (GeM came two years later), on Pittsburgh, with 64 clusters.
 # * The live CI numbers above come from one epoch on one seed: a smoke test. Compare methods with the committed
