@@ -465,7 +465,7 @@ def test_course_exercise_instructor_full_stub_zero_library_shortcut_zero(path, t
 
 # --- cells an exercise tells the student to edit ---------------------------------------------------------
 
-EDIT = re.compile(r"(?:[Ss]ets?|run with|[Cc]hange)\s+(?:`|<code>)?([A-Z][A-Z_0-9]+)\s*=")
+EDIT = re.compile(r"\b(?:[Ss]ets?|run with|[Cc]hange)\s+(?:`|<code>)?([A-Z][A-Z_0-9]+)\s*=")
 
 
 def _assigned(cell, name: str) -> bool:
