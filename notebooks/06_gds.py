@@ -334,12 +334,8 @@ def values(name, metric):
     return res["per seed"][name][metric] if name in res["per seed"] else [res["fixed"][name][metric]] * len(seeds)
 
 def verdict(metric, a, b, lower_is_better=False):
-    m, sd = results.mean_std([x - y for x, y in zip(values(a, metric), values(b, metric))])
-    se = sd / np.sqrt(len(seeds))
-    if abs(m) <= 2 * se:
-        return f"{metric:>20}: {a} − {b} = {m:+.3f} ± {se:.3f} (SE): within 2 SE, no verdict"
-    better = a if (m < 0) == lower_is_better else b
-    return f"{metric:>20}: {a} − {b} = {m:+.3f} ± {se:.3f} (SE): {better} is better"
+    text = results.paired_verdict(values(a, metric), values(b, metric), a, b, lower_is_better=lower_is_better)
+    return f"{metric:>20}: {text}"
 
 controls = {name: results.control_gate(values(name, "R@1"), res["fixed"]["frozen backbone"]["R@1"], name,
                                        "frozen backbone") for name in (TRI, MS)}

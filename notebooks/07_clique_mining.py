@@ -508,11 +508,9 @@ def gated_metric(metric, a, b, lower_is_better=False):
     passed, control = results.control_gate(r1(b), FROZEN_R1, b, "frozen backbone + GeM")
     if not passed:
         return f"{metric:>22}: inconclusive: the baseline does not improve on its starting point ({control})"
-    m, sd = results.mean_std([x - y for x, y in zip(res["per seed"][a][metric], res["per seed"][b][metric])])
-    se = sd / np.sqrt(len(seeds))
-    word = ("within 2 SE, no verdict" if abs(m) <= 2 * se
-            else ("clique arm" if (m < 0) == lower_is_better else "baseline") + " is better")
-    return f"{metric:>22}: {a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(seeds)} paired seeds): {word}"
+    text = results.paired_verdict(res["per seed"][a][metric], res["per seed"][b][metric], a, b,
+                                  lower_is_better=lower_is_better)
+    return f"{metric:>22}: {text}"
 
 for name in ARMS:
     print("control:", results.control_gate(r1(name), res["per seed"][name]["start R@1"], name, "its start")[1] + ";",

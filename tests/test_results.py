@@ -73,6 +73,9 @@ def test_mean_std_and_paired_verdict():
     assert "A is better" in results.paired_verdict([0.8, 0.81, 0.82], [0.5, 0.52, 0.5], "A", "B")
     assert "B is better" in results.paired_verdict([0.5, 0.52, 0.5], [0.8, 0.81, 0.82], "A", "B")
     assert "no verdict" in results.paired_verdict([0.5, 0.6, 0.4], [0.5, 0.4, 0.6], "A", "B")
+    # a mis-ordering probability: lower is better, so the larger values lose
+    assert "B is better" in results.paired_verdict([0.3, 0.31, 0.32], [0.1, 0.12, 0.1], "A", "B", lower_is_better=True)
+    assert "A is better" in results.paired_verdict([0.1, 0.12, 0.1], [0.3, 0.31, 0.32], "A", "B", lower_is_better=True)
     assert "one seed" in results.paired_verdict([0.5], [0.4])
     with pytest.raises(ValueError, match="same non-zero"):
         results.paired_verdict([0.5], [0.4, 0.3])

@@ -37,6 +37,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable, Mapping
+import dataclasses
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -444,13 +445,10 @@ def fine_tune(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
 
 def _search_one(args):
     method, train_split, val_split, recipe, seeds, lr = args
-    if lr is None:
-        return lr_search(method, train_split, val_split, recipe, seeds)
-    cache = FrozenFeatureCache(recipe.cache_dtype) if recipe.frozen_cache else None    # one for all seeds
-    runs = {s: fine_tune(method, train_split, val_split, recipe, s, lr=lr, cache=cache) for s in seeds}
-    return LRSearch(method.name, float(lr), (float(lr),), tuple(seeds), len(val_split.q_images),
-                    {float(lr): [r.history.best_recall for r in runs.values()]}, runs,
-                    {float(lr): {s: r.history for s, r in runs.items()}})
+    if lr is not None:          # a given rate: the search over a one-point grid (nothing to choose)
+        method = dataclasses.replace(method, paper_lr=None)
+        recipe = dataclasses.replace(recipe, lr_grid=(lr,), min_val_queries=0)
+    return lr_search(method, train_split, val_split, recipe, seeds)
 
 
 def search_methods(methods, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,), *,

@@ -245,11 +245,12 @@ def mean_std(values, what: str = "mean_std values") -> tuple[float, float]:
     return m, sd
 
 
-def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None) -> str:
+def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None, lower_is_better: bool = False) -> str:
     """A sentence on ``a − b`` over paired seeds: a verdict only when |mean| > 2 standard errors.
 
-    Every value must be a finite number: a NaN / inf raises ValueError naming the method and the seed
-    (``seeds[i]`` when given, else the position)."""
+    ``lower_is_better`` for metrics such as a mis-ordering probability (then a negative difference
+    makes ``a`` the better one). Every value must be a finite number: a NaN / inf raises ValueError
+    naming the method and the seed (``seeds[i]`` when given, else the position)."""
     if len(a_vals) != len(b_vals) or not len(a_vals):
         raise ValueError(f"paired_verdict needs the same non-zero number of seeds, got {len(a_vals)} and {len(b_vals)}")
     seeds = None if seeds is None else list(seeds)
@@ -262,7 +263,7 @@ def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None) ->
         return f"{a} − {b} = {m:+.3f} on one seed: no spread, no verdict"
     se = sd / math.sqrt(len(diff))
     if abs(m) > 2 * se:
-        return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): {a if m > 0 else b} is better"
+        return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): {a if (m > 0) != lower_is_better else b} is better"
     return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): within 2 SE, no verdict"
 
 
