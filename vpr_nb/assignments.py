@@ -396,10 +396,16 @@ def _read_submission(path: Path) -> tuple[nbformat.NotebookNode, bytes]:
                          "ask the student to re-save it from JupyterLab") from err
 
 
+CPU_MARGIN_S = 5.0   # seconds of CPU time a graded process may use beyond the wall-clock timeout
+
+
 def _limits(timeout: float) -> sandbox.Limits:
     if not timeout or timeout <= 0:
         raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
-    return sandbox.Limits(wall_s=float(timeout), cpu_s=float(timeout))
+    # the wall-clock limit decides; the per-process CPU limit is a backstop a little above it (a process
+    # with several busy threads gathers CPU time faster than wall time, and with equal limits an endless
+    # loop could end with either message)
+    return sandbox.Limits(wall_s=float(timeout), cpu_s=float(timeout) + CPU_MARGIN_S)
 
 
 def grade(student_path, source_path, timeout: float = DEFAULT_TIMEOUT, only=None, backend: str | None = None,
