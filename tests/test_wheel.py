@@ -64,7 +64,9 @@ def _notebook(purelib: Path, names: list[str]):
         assert names == {names!r}, names
         for name in names:        # the committed config, so load() checks the file and the backbone fingerprint
             doc = results.load(name, json.loads((folder / f"{{name}}.json").read_text())["config"])
-            print(name, "committed", doc["stamp"]["date"])""",
+            print(name, "committed", doc["stamp"]["date"])
+            for entry in doc["results"].get("trained weights", {{}}).values():   # installed beside it
+                assert (folder / entry["file"]).stat().st_size == entry["bytes"], entry["file"]""",
         """\
         try:
             results.save("99_demo", {"epochs": 1}, {"R@1": 0.5})
