@@ -64,10 +64,15 @@ def test_committed_experiment_reads_the_config(tmp_path):
         notebook.committed_experiment("../04_x", results_dir=tmp_path)
 
 
-def test_notebook_05_reads_notebook_04s_committed_setting():
-    """The setting 05 shares with 04 comes from 04's committed results, and 05's own committed results
-    were computed with exactly that setting."""
+def test_notebook_05_follows_the_course_recipe_on_notebook_04s_world():
+    """05's committed results were computed with the course recipe as it is now (so the CI profile shows
+    what the recipe gives) and on the world of notebook 04, whose rows it is read beside."""
+    import json
+
+    from vpr_nb.recipe import RECIPE, VALIDATION_WORLD
+
     nb04 = notebook.committed_experiment("04_netvlad")
     nb05 = notebook.committed_experiment("05_salad")
-    shared = {k: v for k, v in nb04.items() if k != "trainable_blocks"}
-    assert {k: nb05[k] for k in shared} == shared
+    assert nb05["recipe"] == json.loads(json.dumps(RECIPE.to_dict()))
+    assert all(nb05["world"][k] == nb04["world"][k] for k in ("preset", "seed", "size"))
+    assert nb05["worlds"]["validation"] == json.loads(json.dumps(VALIDATION_WORLD))
