@@ -256,3 +256,13 @@ def test_place_batches_of_package_samplers_train_in_worker_processes(world):
     two = search_methods(methods, tr, va, recipe, seeds=(0,), lr=1e-3, workers=2)
     for name in one:
         assert one[name].runs[0].history.epochs[0]["loss"] == two[name].runs[0].history.epochs[0]["loss"]
+
+
+def test_validation_world_is_a_large_separate_split():
+    from vpr_nb.recipe import VALIDATION_WORLD, validation_split
+
+    va = validation_split()
+    assert len(va.q_images) >= RECIPE.min_val_queries == 500
+    assert VALIDATION_WORLD["seed"] not in (0, 97, 98) and VALIDATION_WORLD["seed"] < 100   # test, selection, pretraining
+    with pytest.raises(ValueError, match="'preset' and 'seed'"):
+        validation_split({"preset": "city"})
