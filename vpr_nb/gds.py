@@ -371,21 +371,60 @@ def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, 
     return slope, float(ym - slope * xm)
 
 
-def _bin_quantiles(sorted_desc: np.ndarray, count: np.ndarray, qs: Sequence[float]) -> dict[float, np.ndarray]:
-    """Per-bin quantiles (numpy "linear" method) of values sorted by (bin, value)."""
+def _quantile_positions(count: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where quantile ``q`` (numpy's "linear" method) of every bin lies in values sorted by (bin, value).
+
+    Bin ``b`` occupies positions ``start_b .. start_b + count_b - 1``; its quantile is at the fractional
+    position ``pos = start_b + q (count_b - 1)``, i.e. ``x[lo] (1 - frac) + x[hi] frac`` with
+    ``lo = floor(pos)``, ``hi = min(lo + 1, start_b + count_b - 1)``, ``frac = pos - lo``.
+    Returns ``(lo, hi, frac)``, meaningful for the non-empty bins only.
+    """
     start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    pos = start + q * np.maximum(count - 1, 0)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, start + count - 1)
+    return lo, hi, pos - lo
+
+
+def _quantile_ranks(count: np.ndarray, qs: Sequence[float]) -> np.ndarray:
+    """The sorted distinct positions (ranks in (bin, value) order) that :func:`_bin_quantiles` reads."""
+    nonempty = count > 0
+    ranks = [r[nonempty] for q in qs for r in _quantile_positions(count, q)[:2]]
+    return np.unique(np.concatenate(ranks))
+
+
+def _bin_quantiles(sorted_desc: np.ndarray, count: np.ndarray, qs: Sequence[float],
+                   ranks: np.ndarray | None = None) -> dict[float, np.ndarray]:
+    """Per-bin quantiles (numpy "linear" method) of values sorted by (bin, value).
+
+    With ``ranks`` (the sorted positions of :func:`_quantile_ranks`), ``sorted_desc`` holds the sorted
+    values at those positions only, ``sorted_desc[k]`` being the value at position ``ranks[k]``.
+    """
     nonempty = count > 0
     out = {}
     for q in qs:
-        pos = start + q * np.maximum(count - 1, 0)
-        lo = np.floor(pos).astype(np.int64)
-        hi = np.minimum(lo + 1, start + count - 1)
-        frac = pos - lo
+        lo, hi, frac = _quantile_positions(count, q)
         vals = np.full(len(count), np.nan)
         lo_n, hi_n, f_n = lo[nonempty], hi[nonempty], frac[nonempty]
+        if ranks is not None:
+            lo_n, hi_n = np.searchsorted(ranks, lo_n), np.searchsorted(ranks, hi_n)
         vals[nonempty] = sorted_desc[lo_n] * (1 - f_n) + sorted_desc[hi_n] * f_n
         out[float(q)] = vals
     return out
+
+
+def _bin_order_statistics(b: np.ndarray, values: np.ndarray, count: np.ndarray,
+                          qs: Sequence[float]) -> dict[float, np.ndarray]:
+    """:func:`_bin_quantiles` without a sort: the (bin, value) keys are partitioned at the ranks it reads.
+
+    ``np.partition`` puts the key of every requested rank where a full sort would put it (smaller keys
+    before it, larger after), so the order statistics, hence the quantiles, are exactly those of the
+    sorted keys, in O(P log R) for R ranks instead of O(P log P). Only the keys at those ranks are decoded.
+    """
+    ranks = _quantile_ranks(count, qs)
+    keys = _bin_value_keys(b, values)
+    keys.partition(ranks)
+    return _bin_quantiles(_values_of_keys(keys[ranks]), count, qs, ranks)
 
 
 MAX_BINS = 1_000_000   # bins a profile may have (each per-bin statistic is one float64 array of this length)
@@ -470,17 +509,16 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     if keep_pairs:   # the pairs themselves are kept: sorted (bin, value, position) keys give the permutation
         order = _sort_by_bin_then_value(b, desc)
         del b
-        sorted_desc = pair_desc = desc[order]
+        pair_desc = desc[order]
         del desc
         pair_geo = geo[order]
         del geo, order
-    elif qs:         # only quantiles: sort the values themselves, no permutation
-        keys = _bin_value_keys(b, desc)
+        quant = _bin_quantiles(pair_desc, count, qs) if qs else {}
+    elif qs:         # only quantiles: partition the (bin, value) keys at the ranks needed, no sort
+        quant = _bin_order_statistics(b, desc, count, qs)
         del b, desc
-        keys.sort()
-        sorted_desc = _values_of_keys(keys)
-        del keys
-    quant = _bin_quantiles(sorted_desc, count, qs) if qs else {}
+    else:
+        quant = {}
 
     fit = (count > 0) & (centers >= lo) & (centers <= hi)
     if fit.sum() >= 2:
