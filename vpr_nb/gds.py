@@ -63,6 +63,7 @@ _DESC_CHUNK_FLOATS = 1 << 18  # floats per gathered descriptor block (1 MiB)
 _GRAM_CHUNK_PAIRS = 8192  # pairs per Gram-matrix lookup in _pair_descriptor_distances
 _GRAM_MAX_WORK = 24  # Gram entries (symmetric: half) per pair above which a chunk uses the difference formula
                      # (a gathered-difference chunk costs about as much as a Gram matrix of ~35 entries per pair)
+_SELECT_BUCKETS = 1 << 22  # most (bin, value) buckets of the quantile selection (_bin_order_statistics; 32 MiB of counts)
 _CANCEL_FRACTION = np.float32(1 / 32)  # d^2 < (|a|^2 + |b|^2) * this: recompute from the difference
 
 
@@ -415,16 +416,48 @@ def _bin_quantiles(sorted_desc: np.ndarray, count: np.ndarray, qs: Sequence[floa
 
 def _bin_order_statistics(b: np.ndarray, values: np.ndarray, count: np.ndarray,
                           qs: Sequence[float]) -> dict[float, np.ndarray]:
-    """:func:`_bin_quantiles` without a sort: the (bin, value) keys are partitioned at the ranks it reads.
+    """:func:`_bin_quantiles` without sorting all pairs: a one-level radix selection of the ranks it reads.
 
-    ``np.partition`` puts the key of every requested rank where a full sort would put it (smaller keys
-    before it, larger after), so the order statistics, hence the quantiles, are exactly those of the
-    sorted keys, in O(P log R) for R ranks instead of O(P log P). Only the keys at those ranks are decoded.
+    Every pair falls in a bucket ``bin << S | bits(value) >> (31 - S)``: its bin, then the top ``S`` bits of
+    its value's bit pattern (bit 31, the sign, is 0). The bit pattern of a non-negative float32 is monotonic
+    in the value, so bucket numbers are monotonic in (bin, value): bucket ``c`` holds the positions
+    ``cum[c] - hist[c] .. cum[c] - 1`` of the (bin, value) order, with ``hist`` the bucket counts and ``cum``
+    their cumulative sum. The buckets holding the ranks of :func:`_quantile_ranks` are found from ``cum``;
+    only their pairs are gathered, as :func:`_bin_value_keys` keys, and sorted. Rank ``r`` in bucket ``c``
+    is then the key at ``offset_c + r - (cum[c] - hist[c])``, ``offset_c`` being where bucket ``c`` starts
+    among the gathered keys: exactly the order statistic of a full sort. ``S`` is the largest width with
+    at most :data:`_SELECT_BUCKETS` buckets (17 bits for 25 bins: 512 buckets per power of two of the
+    value), so the gathered pairs are a small fraction of all (all of them only if the values of a bin are
+    nearly equal).
     """
     ranks = _quantile_ranks(count, qs)
-    keys = _bin_value_keys(b, values)
-    keys.partition(ranks)
-    return _bin_quantiles(_values_of_keys(keys[ranks]), count, qs, ranks)
+    shift = max(0, min(31, (_SELECT_BUCKETS // len(count)).bit_length() - 1))   # S above
+    values = np.ascontiguousarray(values, dtype=np.float32)
+    bits = values.view(np.uint32)
+    bucket_of = np.empty(len(b), dtype=np.int32)        # bucket of every pair (< 2**22)
+    for s in range(0, len(b), _CHUNK_FLOATS):
+        c = b[s:s + _CHUNK_FLOATS].astype(np.int32)
+        c <<= shift
+        c |= (bits[s:s + _CHUNK_FLOATS] >> np.uint32(31 - shift)).view(np.int32)
+        bucket_of[s:s + _CHUNK_FLOATS] = c
+    hist = np.zeros(len(count) << shift, dtype=np.int64)
+    np.add.at(hist, bucket_of, 1)
+    cum = np.cumsum(hist)
+    rank_bucket = np.searchsorted(cum, ranks, side="right")   # bucket holding each rank
+    wanted = np.unique(rank_bucket)
+    is_wanted = np.zeros(len(hist), dtype=bool)
+    is_wanted[wanted] = True
+    picked = []
+    for s in range(0, len(b), _CHUNK_FLOATS):
+        sel = is_wanted[bucket_of[s:s + _CHUNK_FLOATS]]
+        picked.append(_bin_value_keys(b[s:s + _CHUNK_FLOATS][sel], values[s:s + _CHUNK_FLOATS][sel]))
+    del bucket_of
+    keys = np.concatenate(picked)
+    keys.sort()
+    offset = np.zeros(len(hist), dtype=np.int64)
+    offset[wanted] = np.cumsum(hist[wanted]) - hist[wanted]
+    at = offset[rank_bucket] + ranks - (cum[rank_bucket] - hist[rank_bucket])
+    return _bin_quantiles(_values_of_keys(keys[at]), count, qs, ranks)
 
 
 MAX_BINS = 1_000_000   # bins a profile may have (each per-bin statistic is one float64 array of this length)
@@ -514,7 +547,7 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
         pair_geo = geo[order]
         del geo, order
         quant = _bin_quantiles(pair_desc, count, qs) if qs else {}
-    elif qs:         # only quantiles: partition the (bin, value) keys at the ranks needed, no sort
+    elif qs:         # only quantiles: select the ranks they read, no sort of all pairs
         quant = _bin_order_statistics(b, desc, count, qs)
         del b, desc
     else:
