@@ -63,7 +63,7 @@ _DESC_CHUNK_FLOATS = 1 << 18  # floats per gathered descriptor block (1 MiB)
 _GRAM_CHUNK_PAIRS = 8192  # pairs per Gram-matrix lookup in _pair_descriptor_distances
 _GRAM_MAX_WORK = 24  # Gram entries (symmetric: half) per pair above which a chunk uses the difference formula
                      # (a gathered-difference chunk costs about as much as a Gram matrix of ~35 entries per pair)
-_SELECT_BUCKETS = 1 << 22  # most (bin, value) buckets of the quantile selection (_bin_order_statistics; 32 MiB of counts)
+_SELECT_BUCKETS = 1 << 22  # most (bin, value) buckets of the quantile selection (_bin_order_statistics; 16 MiB of counts)
 _CANCEL_FRACTION = np.float32(1 / 32)  # d^2 < (|a|^2 + |b|^2) * this: recompute from the difference
 
 
@@ -426,12 +426,14 @@ def _bin_order_statistics(b: np.ndarray, values: np.ndarray, count: np.ndarray,
     only their pairs are gathered, as :func:`_bin_value_keys` keys, and sorted. Rank ``r`` in bucket ``c``
     is then the key at ``offset_c + r - (cum[c] - hist[c])``, ``offset_c`` being where bucket ``c`` starts
     among the gathered keys: exactly the order statistic of a full sort. ``S`` is the largest width with
-    at most :data:`_SELECT_BUCKETS` buckets (17 bits for 25 bins: 512 buckets per power of two of the
-    value), so the gathered pairs are a small fraction of all (all of them only if the values of a bin are
-    nearly equal).
+    at most :data:`_SELECT_BUCKETS` buckets and at most one bucket per two pairs (so the counts take at
+    most 2 bytes per pair; 17 bits for 25 bins and 8.7M pairs: 512 buckets per power of two of the value),
+    so the gathered pairs are a small fraction of all (all of them only if the values of a bin are nearly
+    equal).
     """
     ranks = _quantile_ranks(count, qs)
-    shift = max(0, min(31, (_SELECT_BUCKETS // len(count)).bit_length() - 1))   # S above
+    buckets = min(_SELECT_BUCKETS, max(len(b) // 2, len(count)))   # at most one bucket per two pairs
+    shift = max(0, min(31, (buckets // len(count)).bit_length() - 1))   # S above
     values = np.ascontiguousarray(values, dtype=np.float32)
     bits = values.view(np.uint32)
     bucket_of = np.empty(len(b), dtype=np.int32)        # bucket of every pair (< 2**22)
@@ -440,8 +442,8 @@ def _bin_order_statistics(b: np.ndarray, values: np.ndarray, count: np.ndarray,
         c <<= shift
         c |= (bits[s:s + _CHUNK_FLOATS] >> np.uint32(31 - shift)).view(np.int32)
         bucket_of[s:s + _CHUNK_FLOATS] = c
-    hist = np.zeros(len(count) << shift, dtype=np.int64)
-    np.add.at(hist, bucket_of, 1)
+    hist = np.zeros(len(count) << shift, dtype=np.int32 if len(b) < 2 ** 31 else np.int64)
+    np.add.at(hist, bucket_of, hist.dtype.type(1))   # a one of hist's own type: numpy's fast path
     cum = np.cumsum(hist)
     rank_bucket = np.searchsorted(cum, ranks, side="right")   # bucket holding each rank
     wanted = np.unique(rank_bucket)
@@ -454,9 +456,9 @@ def _bin_order_statistics(b: np.ndarray, values: np.ndarray, count: np.ndarray,
     del bucket_of
     keys = np.concatenate(picked)
     keys.sort()
-    offset = np.zeros(len(hist), dtype=np.int64)
-    offset[wanted] = np.cumsum(hist[wanted]) - hist[wanted]
-    at = offset[rank_bucket] + ranks - (cum[rank_bucket] - hist[rank_bucket])
+    sizes = hist[wanted].astype(np.int64)
+    offset = np.cumsum(sizes) - sizes                          # where each wanted bucket starts in keys
+    at = offset[np.searchsorted(wanted, rank_bucket)] + ranks - (cum[rank_bucket] - hist[rank_bucket])
     return _bin_quantiles(_values_of_keys(keys[at]), count, qs, ranks)
 
 
