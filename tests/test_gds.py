@@ -505,3 +505,30 @@ def test_pair_distances_scattered_pairs_and_scaled_descriptors():
         desc = _pair_descriptor_distances(x, y, i, j)
         np.testing.assert_allclose(desc, _exact_desc(x, y, i, j), rtol=2e-6)
     assert _pair_descriptor_distances(a, a, np.zeros(0, np.int32), np.zeros(0, np.int32)).shape == (0,)
+
+
+@pytest.mark.parametrize("num_bins", [1, 8, 25, 1000, 1_000_000])
+def test_bin_order_statistics_equal_the_quantiles_of_the_sorted_values(num_bins):
+    # the radix selection (only the buckets holding the needed ranks are sorted) against a full sort:
+    # ties, zeros, a bin of equal values (every pair in one bucket), a one-pair bin, empty bins
+    from vpr_nb.gds import _bin_order_statistics, _bin_quantiles
+    rng = np.random.default_rng(5)
+    n = 30_000
+    b = rng.integers(0, num_bins, size=n)
+    values = rng.uniform(0.0, 2.0, size=n).astype(np.float32)
+    values[rng.integers(n, size=3000)] = 0.0
+    values[::7] = values[::7].round(2)                   # many exact ties
+    b[:4000], values[:4000] = 0, np.float32(1.25)      # bin 0: 4000 equal values
+    if num_bins > 2:
+        b[b == num_bins - 1] = num_bins - 2               # last bin empty
+        b[4000] = num_bins - 1                            # ... but for one pair
+        b[b == 1] = 0                                     # bin 1 empty
+    b = b.astype(np.int8 if num_bins <= 127 else np.int64)
+    count = np.bincount(b, minlength=num_bins)
+    qs = (0.0, 0.1, 0.5, 0.9, 0.99, 1.0)
+    order = np.lexsort((values, b))
+    want = _bin_quantiles(values[order], count, qs)
+    got = _bin_order_statistics(b, values, count, qs)
+    assert got.keys() == want.keys()
+    for q in qs:
+        np.testing.assert_array_equal(got[q], want[q])

@@ -63,6 +63,7 @@ _DESC_CHUNK_FLOATS = 1 << 18  # floats per gathered descriptor block (1 MiB)
 _GRAM_CHUNK_PAIRS = 8192  # pairs per Gram-matrix lookup in _pair_descriptor_distances
 _GRAM_MAX_WORK = 24  # Gram entries (symmetric: half) per pair above which a chunk uses the difference formula
                      # (a gathered-difference chunk costs about as much as a Gram matrix of ~35 entries per pair)
+_SELECT_BUCKETS = 1 << 22  # most (bin, value) buckets of the quantile selection (_bin_order_statistics; 16 MiB of counts)
 _CANCEL_FRACTION = np.float32(1 / 32)  # d^2 < (|a|^2 + |b|^2) * this: recompute from the difference
 
 
@@ -371,21 +372,94 @@ def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, 
     return slope, float(ym - slope * xm)
 
 
-def _bin_quantiles(sorted_desc: np.ndarray, count: np.ndarray, qs: Sequence[float]) -> dict[float, np.ndarray]:
-    """Per-bin quantiles (numpy "linear" method) of values sorted by (bin, value)."""
+def _quantile_positions(count: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where quantile ``q`` (numpy's "linear" method) of every bin lies in values sorted by (bin, value).
+
+    Bin ``b`` occupies positions ``start_b .. start_b + count_b - 1``; its quantile is at the fractional
+    position ``pos = start_b + q (count_b - 1)``, i.e. ``x[lo] (1 - frac) + x[hi] frac`` with
+    ``lo = floor(pos)``, ``hi = min(lo + 1, start_b + count_b - 1)``, ``frac = pos - lo``.
+    Returns ``(lo, hi, frac)``, meaningful for the non-empty bins only.
+    """
     start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    pos = start + q * np.maximum(count - 1, 0)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, start + count - 1)
+    return lo, hi, pos - lo
+
+
+def _quantile_ranks(count: np.ndarray, qs: Sequence[float]) -> np.ndarray:
+    """The sorted distinct positions (ranks in (bin, value) order) that :func:`_bin_quantiles` reads."""
+    nonempty = count > 0
+    ranks = [r[nonempty] for q in qs for r in _quantile_positions(count, q)[:2]]
+    return np.unique(np.concatenate(ranks))
+
+
+def _bin_quantiles(sorted_desc: np.ndarray, count: np.ndarray, qs: Sequence[float],
+                   ranks: np.ndarray | None = None) -> dict[float, np.ndarray]:
+    """Per-bin quantiles (numpy "linear" method) of values sorted by (bin, value).
+
+    With ``ranks`` (the sorted positions of :func:`_quantile_ranks`), ``sorted_desc`` holds the sorted
+    values at those positions only, ``sorted_desc[k]`` being the value at position ``ranks[k]``.
+    """
     nonempty = count > 0
     out = {}
     for q in qs:
-        pos = start + q * np.maximum(count - 1, 0)
-        lo = np.floor(pos).astype(np.int64)
-        hi = np.minimum(lo + 1, start + count - 1)
-        frac = pos - lo
+        lo, hi, frac = _quantile_positions(count, q)
         vals = np.full(len(count), np.nan)
         lo_n, hi_n, f_n = lo[nonempty], hi[nonempty], frac[nonempty]
+        if ranks is not None:
+            lo_n, hi_n = np.searchsorted(ranks, lo_n), np.searchsorted(ranks, hi_n)
         vals[nonempty] = sorted_desc[lo_n] * (1 - f_n) + sorted_desc[hi_n] * f_n
         out[float(q)] = vals
     return out
+
+
+def _bin_order_statistics(b: np.ndarray, values: np.ndarray, count: np.ndarray,
+                          qs: Sequence[float]) -> dict[float, np.ndarray]:
+    """:func:`_bin_quantiles` without sorting all pairs: a one-level radix selection of the ranks it reads.
+
+    Every pair falls in a bucket ``bin << S | bits(value) >> (31 - S)``: its bin, then the top ``S`` bits of
+    its value's bit pattern (bit 31, the sign, is 0). The bit pattern of a non-negative float32 is monotonic
+    in the value, so bucket numbers are monotonic in (bin, value): bucket ``c`` holds the positions
+    ``cum[c] - hist[c] .. cum[c] - 1`` of the (bin, value) order, with ``hist`` the bucket counts and ``cum``
+    their cumulative sum. The buckets holding the ranks of :func:`_quantile_ranks` are found from ``cum``;
+    only their pairs are gathered, as :func:`_bin_value_keys` keys, and sorted. Rank ``r`` in bucket ``c``
+    is then the key at ``offset_c + r - (cum[c] - hist[c])``, ``offset_c`` being where bucket ``c`` starts
+    among the gathered keys: exactly the order statistic of a full sort. ``S`` is the largest width with
+    at most :data:`_SELECT_BUCKETS` buckets and at most one bucket per two pairs (so the counts take at
+    most 2 bytes per pair; 17 bits for 25 bins and 8.7M pairs: 512 buckets per power of two of the value),
+    so the gathered pairs are a small fraction of all (all of them only if the values of a bin are nearly
+    equal).
+    """
+    ranks = _quantile_ranks(count, qs)
+    buckets = min(_SELECT_BUCKETS, max(len(b) // 2, len(count)))   # at most one bucket per two pairs
+    shift = max(0, min(31, (buckets // len(count)).bit_length() - 1))   # S above
+    values = np.ascontiguousarray(values, dtype=np.float32)
+    bits = values.view(np.uint32)
+    bucket_of = np.empty(len(b), dtype=np.int32)        # bucket of every pair (< 2**22)
+    for s in range(0, len(b), _CHUNK_FLOATS):
+        c = b[s:s + _CHUNK_FLOATS].astype(np.int32)
+        c <<= shift
+        c |= (bits[s:s + _CHUNK_FLOATS] >> np.uint32(31 - shift)).view(np.int32)
+        bucket_of[s:s + _CHUNK_FLOATS] = c
+    hist = np.zeros(len(count) << shift, dtype=np.int32 if len(b) < 2 ** 31 else np.int64)
+    np.add.at(hist, bucket_of, hist.dtype.type(1))   # a one of hist's own type: numpy's fast path
+    cum = np.cumsum(hist)
+    rank_bucket = np.searchsorted(cum, ranks, side="right")   # bucket holding each rank
+    wanted = np.unique(rank_bucket)
+    is_wanted = np.zeros(len(hist), dtype=bool)
+    is_wanted[wanted] = True
+    picked = []
+    for s in range(0, len(b), _CHUNK_FLOATS):
+        sel = is_wanted[bucket_of[s:s + _CHUNK_FLOATS]]
+        picked.append(_bin_value_keys(b[s:s + _CHUNK_FLOATS][sel], values[s:s + _CHUNK_FLOATS][sel]))
+    del bucket_of
+    keys = np.concatenate(picked)
+    keys.sort()
+    sizes = hist[wanted].astype(np.int64)
+    offset = np.cumsum(sizes) - sizes                          # where each wanted bucket starts in keys
+    at = offset[np.searchsorted(wanted, rank_bucket)] + ranks - (cum[rank_bucket] - hist[rank_bucket])
+    return _bin_quantiles(_values_of_keys(keys[at]), count, qs, ranks)
 
 
 MAX_BINS = 1_000_000   # bins a profile may have (each per-bin statistic is one float64 array of this length)
@@ -470,17 +544,16 @@ def gds_profile(descriptors, utm, max_distance: float, bin_width: float, pairs: 
     if keep_pairs:   # the pairs themselves are kept: sorted (bin, value, position) keys give the permutation
         order = _sort_by_bin_then_value(b, desc)
         del b
-        sorted_desc = pair_desc = desc[order]
+        pair_desc = desc[order]
         del desc
         pair_geo = geo[order]
         del geo, order
-    elif qs:         # only quantiles: sort the values themselves, no permutation
-        keys = _bin_value_keys(b, desc)
+        quant = _bin_quantiles(pair_desc, count, qs) if qs else {}
+    elif qs:         # only quantiles: select the ranks they read, no sort of all pairs
+        quant = _bin_order_statistics(b, desc, count, qs)
         del b, desc
-        keys.sort()
-        sorted_desc = _values_of_keys(keys)
-        del keys
-    quant = _bin_quantiles(sorted_desc, count, qs) if qs else {}
+    else:
+        quant = {}
 
     fit = (count > 0) & (centers >= lo) & (centers <= hi)
     if fit.sum() >= 2:
