@@ -529,7 +529,7 @@ def assignments(model, images):
         return torch.softmax(model.aggregator.conv(x), dim=1)          # [B, K, h, w], Eq. (3)
 
 
-start = make_model("NetVLAD", 0)                                   # seed 0 at its k-means initialisation
+start = runs["NetVLAD", 0]["init"]                                 # seed 0 at its k-means initialisation (both profiles)
 trained = load_trained(committed, "netvlad-seed0", copy.deepcopy(start))   # the committed reproduce run, seed 0
 show = test_split.q_images[[0, 40, 80]]
 a_init, a_trained = assignments(start.eval(), show), assignments(trained.eval(), show)

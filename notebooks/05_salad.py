@@ -407,10 +407,6 @@ for name, r in init_stats.items():
 # in about a minute on two cores); the committed reproduce profile below trains every row on 5 seeds.
 
 # %%
-def method_name(entry):
-    return entry.name if isinstance(entry, Method) else entry[0].name
-
-
 start0 = build_start(Method("SALAD", "salad"), train_split, RECIPE, seed=0)       # the recipe's SALAD start
 assert all(torch.allclose(a, b, atol=1e-5)
            for a, b in zip(start0.state_dict().values(), salad_model(0, True).state_dict().values()))
