@@ -179,6 +179,9 @@ def test_route_conditions_summer_vs_winter(route):
     (dict(zone_fence_share=(0.0, 1.5, 0.0)), "zone shares"),
     (dict(preset="route", track_smoothing=500), "track_smoothing"),
     (dict(preset="route", size="huge"), "unknown size"),
+    (dict(preset="route", camera_yaw=200.0), "camera_yaw"),
+    (dict(preset="route", roadside_spacing=-1.0), "roadside_spacing"),
+    (dict(preset="route", roadside_height=(3.0, 1.0)), "roadside_height"),
 ])
 def test_make_dataset_rejects_bad_input(kwargs, match):
     kwargs = {"preset": "city", **kwargs}
@@ -309,6 +312,36 @@ def test_route_preset_and_sizes_come_from_its_record():
     assert make_config("route", frame_spacing=2.5).pos_radius == pytest.approx(1.01 * 2.5)
     assert make_config("route", pos_radius=30.0).pos_radius == 30.0
     assert make_config("city", "small").blocks == WORLD_KINDS["city"].sizes["small"]["blocks"]
+
+
+def test_roadside_content_and_sideways_camera():
+    """The route's content knobs: roadside objects beside the track and a camera turned to the side.
+    With them on, the frame 5 m ahead is a near-duplicate of a frame's cross-season positive far less
+    often in pixels (vpr_nb.probes, Eq. (2)); with them off the world keeps its fingerprint."""
+    from vpr_nb.probes import near_duplicate_probe
+
+    on = dict(roadside_spacing=1.0, camera_yaw=45.0)
+    plain = make_dataset("route", seed=1, frame_spacing=2.5, **SMALL_ROUTE)
+    rich = make_dataset("route", seed=1, frame_spacing=2.5, **SMALL_ROUTE, **on)
+    np.testing.assert_array_equal(plain.db_utm, rich.db_utm)                  # same track and frames
+    np.testing.assert_allclose((rich.db_heading - plain.db_heading) % 360, 45.0)
+    pole = 2                                                                    # layout.POLE
+    scene, before = rich.extra["scene"], (plain.extra["scene"].kind == pole).sum()
+    objects = np.flatnonzero(scene.kind == pole)[before:]   # the roadside objects come after the catenary poles
+    length = SMALL_ROUTE["num_frames"] * 2.5
+    assert 0.8 * 2 * length < len(objects) < 1.2 * 2 * length                # one per metre per side
+    mid = (scene.a[objects] + scene.b[objects]) / 2
+    dist = cdist(mid, scene.layout["track"]).min(1)
+    lo, hi = rich.config.roadside_distance
+    assert dist.min() > lo - 0.1 and dist.max() < np.hypot(hi, 2.5)
+    rates = [near_duplicate_probe(d.split("train"), None, steps=(5.0,))[5.0] for d in (plain, rich)]
+    assert rates[0] > 0.8 and rates[1] < 0.6, rates
+    assert make_config("route", **on).fingerprint() != make_config("route").fingerprint()
+    off = dataclasses.replace(rich.config, roadside_spacing=0.0, camera_yaw=0.0)
+    assert off.fingerprint() == plain.config.fingerprint()
+    # with the knobs off nothing is drawn: the world is pixel for pixel the plain one
+    np.testing.assert_array_equal(make_dataset("route", seed=1, frame_spacing=2.5, roadside_height=(1.0, 2.0),
+                                               **SMALL_ROUTE).db_images, plain.db_images)
 
 
 def test_fingerprint_follows_every_field_and_the_condition_rows(monkeypatch):

@@ -28,14 +28,14 @@ SPLITS = ("train", "val", "test")
 # validation tables: (low, high) ranges in metres or fractions, shares in [0, 1], counts >= 1
 _RANGES = ("building_width", "building_height", "tree_distance", "house_distance", "house_width", "house_depth",
            "house_height", "tree_radius", "tree_height", "skyline_height", "window_spacing", "floor_height",
-           "window_width", "window_height")
+           "window_width", "window_height", "roadside_distance", "roadside_height", "roadside_width")
 _SHARES = ("street_tree_share", "skyline_blockiness", "band_share", "shop_share", "car_share")
 _COUNTS = ("outer_blocks", "headings", "num_frames", "frames_per_group", "track_smoothing", "zone_frames",
            "house_every", "fence_every", "num_facade_types")
 _NON_NEGATIVE = ("position_jitter", "heading_jitter", "pitch_jitter", "occluder_rate", "colour_variation",
                  "condition_strength", "db_position_jitter", "db_heading_jitter", "street_tree_shift",
                  "tree_colour_variation", "style_colour_variation", "trees_per_frame", "track_curvature",
-                 "house_yaw", "corner_remainder", "street_tree_inset", "kerb_margin")
+                 "house_yaw", "corner_remainder", "street_tree_inset", "kerb_margin", "roadside_spacing")
 _POSITIVE = ("fov", "view_distance", "block_size", "street_width", "place_spacing", "frame_spacing",
              "street_tree_spacing", "pole_spacing", "sky_radius", "split_gap", "pos_radius", "train_pos_radius")
 
@@ -101,6 +101,12 @@ class WorldConfig:
     fence_every: int = 4                          # a fence spans this many frames
     fence_offset: float = 6.0                     # its distance from the track
     fence_height: float = 1.2
+    # --- route content per metre (off by default; notebook 07's route turns them on) ---
+    camera_yaw: float = 0.0                       # cameras look this far left of the track's direction (0 = forward)
+    roadside_spacing: float = 0.0                 # one roadside object per this many metres per side (0 = none)
+    roadside_distance: tuple[float, float] = (2.0, 6.0)  # of a roadside object from the track
+    roadside_height: tuple[float, float] = (0.6, 3.5)    # its top (signs hang from 0.6 x their top)
+    roadside_width: tuple[float, float] = (0.3, 2.0)
     # --- trees (both kinds) ---
     tree_radius: tuple[float, float] = (1.5, 3.0)        # half width of a tree's two crossed quads
     tree_height: tuple[float, float] = (5.0, 10.0)
@@ -149,6 +155,8 @@ class WorldConfig:
         for name in _POSITIVE:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not -180 <= self.camera_yaw <= 180:
+            raise ValueError(f"camera_yaw must be in [-180, 180] degrees, got {self.camera_yaw}")
         if self.condition_strength > 1:
             raise ValueError(f"condition_strength must be in [0, 1], got {self.condition_strength}")
         for name in _COUNTS:
@@ -175,10 +183,19 @@ class WorldConfig:
 
     def fingerprint(self) -> str:
         """sha256 of every field and of the :data:`CONDITIONS` rows this world uses: two configs with the
-        same fingerprint describe the same scene (:mod:`vpr_nb.results` keys committed results on it)."""
+        same fingerprint describe the same scene (:mod:`vpr_nb.results` keys committed results on it).
+        The optional content knobs (:data:`OPTIONAL_CONTENT`) enter it only when set away from their
+        defaults: with them off the scene is the one drawn without them, so its fingerprint stays."""
         used = (self.db_condition, *self.query_conditions)
-        doc = {"config": dataclasses.asdict(self), "conditions": {c: CONDITIONS[c] for c in sorted(set(used))}}
+        config = {k: v for k, v in dataclasses.asdict(self).items()
+                  if not (k in OPTIONAL_CONTENT and v == _DEFAULTS[k])}
+        doc = {"config": config, "conditions": {c: CONDITIONS[c] for c in sorted(set(used))}}
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+# Content knobs that are off by default and leave a world's fingerprint alone while they are off.
+OPTIONAL_CONTENT = ("camera_yaw", "roadside_spacing", "roadside_distance", "roadside_height", "roadside_width")
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldConfig)}
 
 
 def make_config(preset: str = "city", size: str = "tiny", **overrides) -> WorldConfig:

@@ -1,8 +1,9 @@
 """The ``"route"`` world (Nordland-like): one long railway through countryside.
 
 Trees, houses, catenary poles and fences along a smooth curvy track, in landscape zones (forest,
-field, village) that change slowly; a camera looking forward takes one frame every ``frame_spacing``
-metres; the database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
+field, village) that change slowly, and optionally roadside objects close to the track (more content
+per metre: ``roadside_spacing``); a camera looking forward (or ``camera_yaw`` degrees to the side)
+takes one frame every ``frame_spacing`` metres; the database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
 (``pos_radius = 1.01 * frame_spacing``). Splits are bands of frames.
 """
 from __future__ import annotations
@@ -27,6 +28,8 @@ TRACK_HALF_WIDTH = 1.6             # ground: ballast bed on each side of the tra
 RAIL_BAND = (0.7, 0.9)             # ground: the rails, at these distances from the centre line
 SNOW_FREE_TRACK = 1.0              # ground: no snow this close to the centre line
 GRASS_PATCH = 4                    # ground: grass brightness varies per 4 m x 4 m patch
+SIGN_SHARE, SIGN_BOTTOM = 0.3, 0.6  # roadside objects: 30 % are signs hanging from 0.6 x their top
+ROADSIDE_ALBEDO = (0.05, 0.95)     # their colour channels are drawn uniformly in this range
 BALLAST_COLOUR, RAIL_COLOUR, GRASS_COLOUR = rgb(0.38, 0.34, 0.30), rgb(0.6, 0.6, 0.62), rgb(0.25, 0.42, 0.18)
 
 
@@ -47,7 +50,7 @@ def _track(cfg, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 
 def layout(cfg, rng: np.random.Generator) -> Scene:
     """The track, then along it: trees (by zone density), houses (boxes of four walls), catenary poles
-    on one side and fences in the fields."""
+    on one side, fences in the fields and, when ``roadside_spacing`` > 0, roadside objects."""
     track, heading = _track(cfg, rng)
     styles = facade_styles(cfg, rng)
     store = SegmentStore()
@@ -91,6 +94,8 @@ def layout(cfg, rng: np.random.Generator) -> Scene:
             side = rng.choice([-1, 1])
             p, q = track[k] + normal[k] * side * cfg.fence_offset, track[k + e] + normal[k + e] * side * cfg.fence_offset
             store.add(p[None], q[None], [0.0], [cfg.fence_height], [FENCE], [0], FENCE_COLOUR[None], [0.0])
+    if cfg.roadside_spacing > 0:
+        _roadside(store, cfg, rng, track, heading, normal, fwd)
     # the rails: a KD-tree over the track sampled RAIL_SAMPLES times per frame (distance to the polyline)
     fine = np.concatenate([track[:-1] + (track[1:] - track[:-1]) * f
                            for f in np.linspace(0, 1, RAIL_SAMPLES, endpoint=False)])
@@ -98,16 +103,38 @@ def layout(cfg, rng: np.random.Generator) -> Scene:
                         layout=dict(track=track, heading=heading, track_tree=cKDTree(fine)), styles=styles)
 
 
+def _roadside(store: SegmentStore, cfg, rng: np.random.Generator, track, heading, normal, fwd) -> None:
+    """Roadside objects on both sides of the track, one per ``roadside_spacing`` metres per side on
+    average (Poisson count, uniform positions): flat panels (posts, boards, bins, signs) of random
+    colour, ``roadside_width`` wide and ``roadside_height`` tall, turned up to +-90 degrees off the
+    track, ``roadside_distance`` from it; a share of them are signs that hang above the ground. They
+    are near the camera, so a few metres of travel moves them far across the image (parallax), and
+    their colours do not change with the season."""
+    n = len(track)
+    for side in (-1, 1):
+        m = rng.poisson(n * cfg.frame_spacing / cfg.roadside_spacing)
+        k = rng.integers(0, n, m)
+        c = (track[k] + fwd[k] * rng.uniform(0, cfg.frame_spacing, m)[:, None]
+             + normal[k] * (side * rng.uniform(*cfg.roadside_distance, m))[:, None])
+        ang = heading[k] + rng.uniform(-np.pi / 2, np.pi / 2, m)
+        half = np.stack([np.cos(ang), np.sin(ang)], 1) * (rng.uniform(*cfg.roadside_width, m) / 2)[:, None]
+        top = rng.uniform(*cfg.roadside_height, m)
+        bottom = np.where(rng.random(m) < SIGN_SHARE, top * SIGN_BOTTOM, 0.0)
+        colour = rng.uniform(*ROADSIDE_ALBEDO, (m, 3))
+        store.add(c - half, c + half, bottom, top, np.full(m, POLE), np.zeros(m), colour, np.zeros(m))
+
+
 def cameras(cfg, rng: np.random.Generator, scene: Scene) -> Cameras:
-    """One forward-looking database camera per frame; its query jittered along the track and in
-    heading. A query is tagged with its frame's track position (Nordland's ground truth is
+    """One database camera per frame, looking along the track (turned ``camera_yaw`` degrees to the
+    left: a sideways view, in which near content moves across the image); its query jittered along
+    the track and in heading. A query is tagged with its frame's track position (Nordland's ground truth is
     frame-aligned), so positives within 1.01 x frame_spacing are exactly frames i-1, i, i+1; the
     along-track jitter only moves the rendered camera."""
     track, heading = scene.layout["track"], scene.layout["heading"]
     n = len(track)
     frames = np.arange(n)
     db_pos = track.copy()
-    db_head = np.degrees(heading) % 360
+    db_head = (np.degrees(heading) + cfg.camera_yaw) % 360
     fwd = np.stack([np.cos(heading), np.sin(heading)], 1)
     q_pos = track + fwd * rng.normal(0, cfg.position_jitter, n)[:, None]
     q_head = (db_head + rng.normal(0, cfg.heading_jitter, n)) % 360
@@ -138,7 +165,8 @@ ROUTE = WorldKind(
                       "zone_frames", "zone_tree_density", "zone_house_share", "zone_fence_share", "trees_per_frame",
                       "tree_distance", "house_every", "house_distance", "house_width", "house_depth", "house_height",
                       "house_yaw", "pole_spacing", "pole_offset", "pole_height", "fence_every", "fence_offset",
-                      "fence_height"}),
+                      "fence_height", "camera_yaw", "roadside_spacing", "roadside_distance",
+                      "roadside_height", "roadside_width"}),
     preset=dict(db_condition="summer", query_conditions=("winter",), position_jitter=0.8, heading_jitter=2.0,
                 occluder_rate=0.0, split_fractions=(0.6, 0.2, 0.2), skyline_height=(10.0, 130.0),
                 skyline_blockiness=0.0),
