@@ -61,7 +61,8 @@ from vpr_nb.samplers import (CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBat
 from vpr_nb.synthetic import make_dataset
 
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
-ROUTE = {"num_facade_types": 60, "colour_variation": 0.3, "frame_spacing": 2.5, "frames_per_group": 2}
+ROUTE = {"num_facade_types": 60, "colour_variation": 0.3, "frame_spacing": 2.5, "frames_per_group": 2,
+         "roadside_spacing": 1.0, "camera_yaw": 45.0}
 WORLD = {"preset": "route", "seed": 0, "size": "tiny", "overrides": ROUTE}
 print(f"profile {PROFILE}: the tuned route {ROUTE} and the city (seed 0)")
 
