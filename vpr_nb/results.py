@@ -29,7 +29,6 @@ its own starting point (:func:`control_gate`).
 """
 from __future__ import annotations
 
-import dataclasses
 import datetime as _dt
 import json
 import math
@@ -90,7 +89,7 @@ def world_fingerprints(config: Mapping) -> dict[str, dict]:
                              f"got {spec!r}")
         cfg = make_config(spec["preset"], spec.get("size", "tiny"), **dict(spec.get("overrides") or {}))
         out[key] = {"fingerprint": cfg.fingerprint(), "world": f"{cfg.preset}-{cfg.size}",
-                    "config": _canonical(dataclasses.asdict(cfg))}
+                    "config": _canonical(cfg.scene_fields())}
     return out
 
 
@@ -105,7 +104,9 @@ def _stale_worlds(path: Path, committed, now: dict) -> str | None:
         if old["fingerprint"] == rec["fingerprint"]:
             continue
         was, cur = old.get("config") or {}, rec["config"]
-        fields = sorted(k for k in set(was) | set(cur) if was.get(k, "(absent)") != cur.get(k, "(absent)"))
+        from .synthetic.config import OPTIONAL_CONTENT, WorldConfig
+        off = {k: _canonical(getattr(WorldConfig, k)) for k in OPTIONAL_CONTENT}     # absent = at its default
+        fields = sorted(k for k in set(was) | set(cur) if was.get(k, off.get(k, "(absent)")) != cur.get(k, off.get(k, "(absent)")))
         what = (f"in WorldConfig field(s) {fields} (committed {[was.get(k, '(absent)') for k in fields]}, now "
                 f"{[cur.get(k, '(absent)') for k in fields]})" if fields else
                 "in the condition rows it uses (vpr_nb.synthetic.CONDITIONS)")

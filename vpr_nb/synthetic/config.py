@@ -181,15 +181,18 @@ class WorldConfig:
         if kind.check is not None:
             kind.check(self)
 
+    def scene_fields(self) -> dict:
+        """Every field as a dict, less the optional content knobs (:data:`OPTIONAL_CONTENT`) left at their
+        defaults: what :meth:`fingerprint` hashes and :mod:`vpr_nb.results` records."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if not (k in OPTIONAL_CONTENT and v == _DEFAULTS[k])}
+
     def fingerprint(self) -> str:
         """sha256 of every field and of the :data:`CONDITIONS` rows this world uses: two configs with the
         same fingerprint describe the same scene (:mod:`vpr_nb.results` keys committed results on it).
         The optional content knobs (:data:`OPTIONAL_CONTENT`) enter it only when set away from their
         defaults: with them off the scene is the one drawn without them, so its fingerprint stays."""
         used = (self.db_condition, *self.query_conditions)
-        config = {k: v for k, v in dataclasses.asdict(self).items()
-                  if not (k in OPTIONAL_CONTENT and v == _DEFAULTS[k])}
-        doc = {"config": config, "conditions": {c: CONDITIONS[c] for c in sorted(set(used))}}
+        doc = {"config": self.scene_fields(), "conditions": {c: CONDITIONS[c] for c in sorted(set(used))}}
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
