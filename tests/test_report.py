@@ -197,3 +197,18 @@ def test_parallel_run_waits_for_the_notebook_it_reads(tmp_path, monkeypatch):
     data = json.loads((out / "results.json").read_text())
     assert [nb["name"] for nb in data["notebooks"]] == ["04_a", "05_b", "06_c"] and data["jobs"] == 2
     assert [nb["results"] for nb in data["notebooks"]] == [{"04_a": {"n": 4}}, {"05_b": {"n": 5}}, {"06_c": {"n": 6}}]
+
+
+def test_environment_header_records_the_cpu_kernels(monkeypatch):
+    # trained numbers depend on the vector instructions of the convolution kernels: the header says which
+    import torch
+
+    head = report.environment_header("ci")
+    assert head["cpu"].endswith(f"; torch kernels {torch.backends.cpu.get_cpu_capability()}")
+    assert head["cpu"].split(";")[0].strip()          # a processor name, never empty
+
+    def no_cpuinfo(*args, **kwargs):
+        raise OSError("no /proc here")
+
+    monkeypatch.setattr("builtins.open", no_cpuinfo)   # macOS / Windows: platform's name instead
+    assert report.cpu_description().split(";")[0].strip()
