@@ -104,13 +104,13 @@ reproduce: venv
 
 # re-make the course backbone (vpr_nb/weights/course_backbone.pt + .json), about 6 min on 2 cores
 pretrain: venv
-	$(BIN)/python -m vpr_nb.pretrain
+	$(BIN)/python -m vpr_nb.kernels --run $(BIN)/python -m vpr_nb.pretrain
 
 assignments: venv
 	$(BIN)/python -m vpr_nb.assignments generate notebooks assignments
 
 lab: venv
-	$(BIN)/jupyter lab notebooks $$(test "$$(id -u)" = 0 && echo --allow-root)
+	$(BIN)/python -m vpr_nb.kernels --run $(BIN)/jupyter lab notebooks $$(test "$$(id -u)" = 0 && echo --allow-root)
 
 # every bench runs even if one fails (a failure is a broken invariant or a ratio, never absolute time);
 # the failed ones are listed at the end and make the target fail

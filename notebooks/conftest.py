@@ -1,9 +1,17 @@
-"""nbval with a declared numeric tolerance for cells marked ``# NBVAL_TOLERANCE=...``
-(see ``vpr_nb/output_tolerance.py``): such a cell's re-run passes when its text equals the stored one
-with every decimal number within the tolerance; every other cell is compared exactly, as nbval does."""
+"""nbval on the pinned CPU kernels, with a declared numeric tolerance for cells marked ``# NBVAL_TOLERANCE=...``.
+
+The kernels nbval starts inherit :data:`vpr_nb.kernels.PINNED` (set here, before any kernel starts), the
+environment the stored outputs were recorded in (``make notebook``), so a trained number is the same bits on
+any x86-64 machine. A marked cell's re-run passes when its text equals the stored one with every decimal
+number within the tolerance (``vpr_nb/output_tolerance.py``); every other cell is compared exactly, as
+nbval does."""
 from __future__ import annotations
 
 import copy
+
+from vpr_nb.kernels import pin_this_process
+
+pin_this_process()
 
 try:
     from nbval import plugin as _nbval

@@ -1,6 +1,14 @@
-"""Fixtures shared by several test modules."""
-import pytest
-import torch
+"""Fixtures shared by several test modules.
+
+The tests run on the pinned CPU kernels (:mod:`vpr_nb.kernels`), set here before torch and numpy start
+(unless a plugin imported them first), as the notebooks run: pinned numbers are then the same on any
+x86-64 machine."""
+from vpr_nb.kernels import pin_this_process
+
+pin_this_process()
+
+import pytest  # noqa: E402 - after the pins, which must precede torch's and numpy's start
+import torch  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -200,12 +200,17 @@ def test_parallel_run_waits_for_the_notebook_it_reads(tmp_path, monkeypatch):
 
 
 def test_environment_header_records_the_cpu_kernels(monkeypatch):
-    # trained numbers depend on the vector instructions of the convolution kernels: the header says which
+    # trained numbers depend on the CPU kernels: the header says which, pinned (vpr_nb.kernels) or native
     import torch
 
+    from vpr_nb import kernels
+
+    monkeypatch.setattr(os, "environ", kernels.pinned_environ())
     head = report.environment_header("ci")
-    assert head["cpu"].endswith(f"; torch kernels {torch.backends.cpu.get_cpu_capability()}")
+    assert head["cpu"].endswith("; pinned kernels (AVX2, MKL COMPATIBLE)")
     assert head["cpu"].split(";")[0].strip()          # a processor name, never empty
+    monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if k not in kernels.PINNED})
+    assert report.cpu_description().endswith(f"; native kernels (torch {torch.backends.cpu.get_cpu_capability()})")
 
     def no_cpuinfo(*args, **kwargs):
         raise OSError("no /proc here")

@@ -12,8 +12,6 @@ from __future__ import annotations
 import os
 import random
 
-import numpy as np
-
 __version__ = "0.1.0"
 
 
@@ -22,6 +20,7 @@ def seed_everything(seed: int = 0) -> None:
 
     A notebook calls it through :func:`vpr_nb.notebook.setup`, which also sets torch's thread count once.
     """
+    import numpy as np
     import torch
 
     random.seed(seed)

@@ -45,6 +45,8 @@ def execute_in_place(path, timeout: int = 600) -> float:
     from jupytext.cli import jupytext as jupytext_cli
     from nbclient import NotebookClient
 
+    from .kernels import pin_this_process
+
     path = Path(path)
     if path.suffix != ".ipynb" or not path.is_file():
         raise FileNotFoundError(f"no notebook at {path}: pass a notebooks/NN_name.ipynb file")
@@ -52,6 +54,7 @@ def execute_in_place(path, timeout: int = 600) -> float:
         raise FileNotFoundError(f"{path.name} has no jupytext pair {path.with_suffix('.py').name}: create it with "
                                 f"`jupytext --set-formats ipynb,py:percent {path}`")
     jupytext_cli(["--sync", "--quiet", str(path)])
+    pin_this_process()       # the kernel computes what nbval's kernels compute (vpr_nb.kernels)
     nb = jupytext.read(path)  # the synced notebook, outputs and cell ids kept
     t0 = time.perf_counter()
     # store_widget_state=True although clean() drops the state: with False, nbclient 0.11's Output-widget hook

@@ -188,31 +188,23 @@ def environment_header(profile: str) -> dict:
 
 
 def cpu_description() -> str:
-    """The processor and the vector instructions torch's CPU kernels use, e.g. ``"Intel(R) Xeon(R) Processor;
-    torch kernels AVX512"``.
+    """The processor and the CPU kernels the notebooks run with, e.g. ``"AMD EPYC; pinned kernels (AVX2, MKL
+    COMPATIBLE)"`` or ``"Intel(R) Xeon(R) Processor; native kernels (torch AVX512)"``.
 
-    Trained numbers depend on them: convolution kernels built for other vector instructions add in another
-    order, and a fine-tune amplifies those last-bit differences over its steps into a different model (in a
-    run of notebook 04, limiting the convolution library to AVX2 changed a seed's test Recall@1 from 0.884
-    to 0.896 with everything else equal). A results file records them so that a reader who gets other
-    trained numbers from the same commit can tell whether the machine is the reason."""
-    name = ""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                if line.lower().startswith("model name"):
-                    name = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    name = name or platform.processor() or platform.machine() or "unknown processor"
+    Trained numbers depend on the kernels: with the native ones, a fine-tune amplifies the last-bit differences
+    between processors into another model (:mod:`vpr_nb.kernels`); :func:`run_report` pins them, so that a
+    results file says whether another machine should give the same numbers."""
+    from .kernels import is_pinned, processor_name
+
+    if is_pinned():
+        return f"{processor_name()}; pinned kernels (AVX2, MKL COMPATIBLE)"
     try:
         import torch
 
         kernels = torch.backends.cpu.get_cpu_capability()
     except Exception:  # noqa: BLE001 - an old or missing torch: the processor alone is still worth recording
         kernels = "unknown"
-    return f"{name}; torch kernels {kernels}"
+    return f"{processor_name()}; native kernels (torch {kernels})"
 
 
 def find_notebooks(notebooks_dir, pattern: str = DEFAULT_PATTERN) -> list[Path]:
@@ -337,6 +329,8 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     only after the notebooks it reads (:func:`notebook_dependencies`); the report lists them in order."""
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
+    from .kernels import pin_this_process
+
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r}; choose one of {PROFILES} "
                          f"('ci' is small and quick, 'reproduce' the full report)")
@@ -344,6 +338,7 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
         raise ValueError(f"jobs must be a whole number >= 1 (notebooks run at once), got {jobs!r}")
     sources = find_notebooks(notebooks_dir, pattern)
     deps = notebook_dependencies(sources)
+    pin_this_process()      # every kernel (and its workers) computes with the same kernels on any x86-64 machine
     out = Path(out)
     for sub in ("notebooks", "figures", "records"):
         (out / sub).mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,199 @@
+"""Which CPU kernels compute the course's numbers, pinned so that every x86-64 machine computes the same floats.
+
+torch, numpy and faiss pick their CPU kernels when they start, by what the processor offers: torch's
+vectorised ATen loops (AVX2 or AVX-512), oneDNN's convolutions, MKL's matrix products and vector maths
+(``exp``, ``log``, ``sqrt`` of whole tensors: other code on Intel than on AMD processors) and faiss's distance
+loops. Each choice rounds a little differently, and a few hundred training steps turn a last-bit difference
+into another Recall@1 (notebook 05's CI profile, one SALAD row: R@1 0.437 with the native kernels of an
+AVX-512 AMD processor, 0.330 with oneDNN limited to AVX2, 0.337 with MKL in its AVX2 reproducible mode).
+
+Stored notebook outputs are compared exactly (nbval) and committed results should be what any machine
+reproduces, so the course runs its notebooks (``make test``'s nbval, :mod:`vpr_nb.authoring`,
+:mod:`vpr_nb.report`, ``make lab``, ``make pretrain``) with :data:`PINNED`: every library limited to AVX2
+kernels (any x86-64 processor since 2013 has them) and MKL in its conditional-numerical-reproducibility
+mode ``COMPATIBLE`` (the same code on Intel and AMD). The optimiser's update runs in torch's fused kernel
+(:func:`vpr_nb.training.make_optimizer`), whose square root is the processor's exact one, not MKL's.
+
+Measured with :func:`fingerprint` (six Adam steps of NetVLAD and of SALAD fine-tuning) on an AMD EPYC
+(AVX-512) and an Intel Xeon (AVX-512), same library versions: native kernels differ in both rows; these
+pins with the fused update give the same bits on both; with MKL in its ``AVX2`` mode the SALAD row still
+differs (its Sinkhorn's ``logsumexp``), and with the unfused update both rows differ (MKL's ``sqrt``).
+
+The variables must be set before the libraries start, i.e. in the environment of the process that imports
+them: :func:`pinned_environ` gives it for a child process (a kernel, a worker), ``python -m vpr_nb.kernels
+--run CMD ...`` runs a command in it, and :func:`pin_this_process` sets it for the processes this one starts.
+``python -m vpr_nb.kernels`` prints which kernels a process gets and its fingerprint, to compare machines.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import sys
+from collections.abc import Mapping
+
+# Environment variables read by the libraries when they start (each is ignored where it does not apply):
+PINNED: dict[str, str] = {
+    "ATEN_CPU_CAPABILITY": "avx2",          # torch's vectorised ATen kernels
+    "ONEDNN_MAX_CPU_ISA": "AVX2",           # oneDNN (torch's convolutions on the CPU)
+    "MKL_CBWR": "COMPATIBLE",               # MKL (matrix products, vector maths): the same code on Intel and AMD
+    "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+    "OPENBLAS_CORETYPE": "Haswell",         # numpy's, scipy's and faiss's OpenBLAS
+    "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR",   # numpy's own SIMD loops (numpy >= 2.4 names)
+    "FAISS_OPT_LEVEL": "avx2",              # faiss's distance loops
+}
+
+
+def pinned_environ(base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """A copy of ``base`` (default ``os.environ``) with :data:`PINNED` set: the environment to start a
+    notebook kernel or a worker process in. Variables already set in ``base`` are overridden."""
+    if base is not None and not isinstance(base, Mapping):
+        raise ValueError(f"base must be a mapping of environment variables, got {type(base).__name__}")
+    env = dict(os.environ if base is None else base)
+    env.update(PINNED)
+    return env
+
+
+def pin_this_process() -> list[str]:
+    """Set :data:`PINNED` in ``os.environ`` so that child processes (kernels started after this call)
+    inherit it; return the names that changed. Libraries already started in *this* process keep their kernels:
+    call it before importing torch, numpy or faiss if this process itself must be pinned."""
+    changed = [k for k, v in PINNED.items() if os.environ.get(k) != v]
+    os.environ.update(PINNED)
+    return changed
+
+
+def is_pinned(env: Mapping[str, str] | None = None) -> bool:
+    """True if ``env`` (default ``os.environ``) has every variable of :data:`PINNED` at its pinned value."""
+    env = os.environ if env is None else env
+    return all(env.get(k) == v for k, v in PINNED.items())
+
+
+def describe() -> dict:
+    """What this process computes with: processor, torch's ATen capability, the library versions and whether
+    the environment is pinned. For results stamps and for comparing two machines."""
+    import platform
+
+    import numpy as np
+    import torch
+
+    info = {"machine": platform.machine(), "processor": processor_name(),
+            "torch": torch.__version__, "numpy": np.__version__,
+            "aten_capability": torch.backends.cpu.get_cpu_capability(),
+            "pinned": is_pinned()}
+    faiss = sys.modules.get("faiss")
+    if faiss is not None:
+        info["faiss"] = getattr(faiss, "__version__", "?")
+    return info
+
+
+def processor_name() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or "unknown"
+
+
+def _digest(*arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def fingerprint(steps: int = 6) -> dict[str, str]:
+    """Short hashes of what the course computes, each stage on its own, so two machines can be compared:
+    ``render`` (a tiny city split's pixels, numpy), ``features`` (the course backbone's local features),
+    ``kmeans`` (faiss k-means, NetVLAD's initialisation), ``search`` (faiss exact search), and ``netvlad`` /
+    ``salad`` (the weights after ``steps`` Adam steps of the course recipe's triplet fine-tuning).
+
+    Equal hashes on two machines mean those numbers are bit for bit the same there (same library versions).
+    Uses one torch thread, as the notebooks do; takes a few seconds."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from ._checks import check_int
+    from .evaluation import images_to_tensor, retrieve
+    from .aggregation import kmeans_centroids
+    from .pretrain import course_backbone
+    from .recipe import RECIPE, Method, build_start, make_source
+    from .synthetic import make_dataset
+    from .training import make_optimizer
+
+    steps = check_int(steps, "steps", minimum=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        split = make_dataset("city", seed=0, size="tiny", splits=("train",)).train
+        out = {"render": _digest(split.db_images, split.q_images)}
+        backbone = course_backbone(final_relu=False).eval()
+        with torch.no_grad():
+            fmap = backbone(images_to_tensor(split.db_images[:64]))
+        out["features"] = _digest(fmap.numpy())
+        local = fmap.permute(0, 2, 3, 1).reshape(-1, fmap.shape[1]).numpy()
+        centroids = kmeans_centroids(local, 8, niter=10, seed=0)
+        out["kmeans"] = _digest(np.ascontiguousarray(centroids, dtype=np.float32))
+        desc = torch.nn.functional.normalize(fmap.mean((2, 3)), dim=1).numpy()
+        dist, idx = retrieve(desc[:48], desc[48:], k=5)
+        out["search"] = _digest(np.ascontiguousarray(dist), np.ascontiguousarray(idx))
+        recipe = dataclasses.replace(RECIPE, batch_size=4, num_candidates=50, frozen_cache=False)
+        for agg in ("netvlad", "salad"):
+            method = Method(agg, agg)
+            model = build_start(method, split, recipe, seed=0)
+            opt = make_optimizer(model, recipe.train_config(1e-3, 0))
+            model.train()
+            losses = []
+            for step, loss in enumerate(make_source(method, split, recipe).steps(model, np.random.default_rng(0))):
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(float(loss.detach()))
+                if step + 1 == steps:
+                    break
+            out[agg] = _digest(np.array(losses), *[p.detach().numpy().copy() for p in model.parameters()])
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--run"]:
+        if len(argv) < 2:
+            print("error: --run needs a command, e.g. python -m vpr_nb.kernels --run jupyter lab", file=sys.stderr)
+            return 2
+        try:
+            os.execvpe(argv[1], argv[1:], pinned_environ())
+        except OSError as exc:
+            print(f"error: cannot run {argv[1]!r}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
+    parser = argparse.ArgumentParser(prog="python -m vpr_nb.kernels", description=__doc__.split("\n\n")[0],
+                                     epilog="--run CMD [ARGS ...]: run a command with the pinned environment "
+                                            "(must come first)")
+    parser.add_argument("--env", action="store_true", help="print the pinned environment as NAME=value lines")
+    parser.add_argument("--steps", type=int, default=6, help="training steps of the fingerprint (default 6)")
+    args = parser.parse_args(argv)
+    if args.env:
+        for k, v in PINNED.items():
+            print(f"{k}={v}")
+        return 0
+    if args.steps < 1:
+        print(f"error: --steps must be at least 1, got {args.steps}", file=sys.stderr)
+        return 2
+    for k, v in describe().items():
+        print(f"{k}: {v}")
+    for k, v in fingerprint(args.steps).items():
+        print(f"fingerprint {k}: {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
