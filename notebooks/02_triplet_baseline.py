@@ -628,7 +628,7 @@ check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 qu
 #
 # * Eq. (3) is one line of torch and equals `torch.nn.TripletMarginLoss` (sum reduction) up to its `eps`.
 # * Only margin-violating triplets carry gradient; once the network has learnt something, random
-#   negatives rarely violate the margin (about one in seven after the stored run) while most hard negatives
+#   negatives rarely violate the margin (about one in eight after the stored run) while most hard negatives
 #   mined from a descriptor cache still do (the two tables above), so mining decides what the network learns.
 # * Weak GPS supervision needs care: the positive must actually show the query's place. Without a heading
 #   filter the positive a network picks among the images within 10 m faces the query's way only as often as

@@ -795,7 +795,7 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 # printout, the two tables (reproduce profile, 5 paired seeds), the controls and the verdicts.
 #
 # * **Eq. (4) at σ = 800 m is a learning-rate factor.** Over the 10 m training radius the weight only
-#   falls from 10 to 8.8; on real triplets W-T-Loss's gradient is T-Loss's times about 9.5 with cosine 1.000.
+#   falls from 10 to 8.8; on real triplets W-T-Loss's gradient is T-Loss's times about 9.4 with cosine 1.000.
 # * **Under SGD at the paper's learning rate the factor is what trains.** At lr $10^{-4}$ T-Loss barely moves
 #   from its starting weights (its control, +0.009 ± 0.003), while W-T-Loss, the same direction with a ~9×
 #   step, moves further (+0.022 ± 0.010); W-T − T = +0.013 ± 0.008 is within 2 SE.

@@ -69,6 +69,24 @@ def is_pinned(env: Mapping[str, str] | None = None) -> bool:
     return all(env.get(k) == v for k, v in PINNED.items())
 
 
+def apply_in_process() -> bool:
+    """In a pinned process (:func:`is_pinned`), route torch's convolutions around oneDNN; return whether it did.
+
+    oneDNN sizes its convolution blocks by the processor's cache, so even limited to AVX2 its gradients add in
+    another order on another processor (measured: a from-scratch SmallCNN trained on an Intel Xeon diverged
+    from the same run on an AMD EPYC in its first epoch, while both ran the pinned environment). Without
+    oneDNN a convolution is an unfold and one MKL matrix product, which MKL's ``COMPATIBLE`` mode computes
+    identically on both. Called by :mod:`vpr_nb.models` when it is imported and by
+    :func:`vpr_nb.notebook.setup`; costs about 1.8x on a whole-network training step, less on the course's
+    fine-tuning (one trainable block)."""
+    if not is_pinned():
+        return False
+    import torch
+
+    torch.backends.mkldnn.enabled = False
+    return True
+
+
 def describe() -> dict:
     """What this process computes with: processor, torch's ATen capability, the library versions and whether
     the environment is pinned. For results stamps and for comparing two machines."""
@@ -80,6 +98,7 @@ def describe() -> dict:
     info = {"machine": platform.machine(), "processor": processor_name(),
             "torch": torch.__version__, "numpy": np.__version__,
             "aten_capability": torch.backends.cpu.get_cpu_capability(),
+            "onednn_convolutions": bool(torch.backends.mkldnn.enabled),
             "pinned": is_pinned()}
     faiss = sys.modules.get("faiss")
     if faiss is not None:
@@ -129,6 +148,7 @@ def fingerprint(steps: int = 6) -> dict[str, str]:
     from .training import make_optimizer
 
     steps = check_int(steps, "steps", minimum=1)
+    apply_in_process()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -188,6 +208,7 @@ def main(argv=None) -> int:
     if args.steps < 1:
         print(f"error: --steps must be at least 1, got {args.steps}", file=sys.stderr)
         return 2
+    apply_in_process()
     for k, v in describe().items():
         print(f"{k}: {v}")
     for k, v in fingerprint(args.steps).items():

@@ -30,6 +30,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from ._checks import check_int, check_tensor, validated_inputs
+from .kernels import apply_in_process
+
+apply_in_process()          # pinned kernels (vpr_nb.kernels): convolutions without oneDNN, the same on every CPU
 
 BACKBONE_NAMES = ("small_cnn", "vgg16", "dinov2")   # the keys of BACKBONES (defined below its classes)
 DINOV2_MODELS = ("dinov2_vits14", "dinov2_vitb14", "dinov2_vitl14", "dinov2_vitg14",

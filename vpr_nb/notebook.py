@@ -56,11 +56,13 @@ def setup(profile: str, seed: int = 0) -> Setup:
     import torch
 
     from . import seed_everything
+    from .kernels import apply_in_process
     from .package_data import committed_results_dir
 
     check_profile(profile)
     seed = check_int(seed, "seed", minimum=0)
     torch.set_num_threads(1)   # same floats on every machine (nbval compares them), and fast on a shared CPU
+    apply_in_process()         # with the pinned kernels (make lab, nbval): no oneDNN convolutions (vpr_nb.kernels)
     seed_everything(seed)
     return Setup(profile=profile, seed=seed, results_dir=committed_results_dir())
 

@@ -5,7 +5,7 @@ the *method* (a loss, an aggregator, a batch sampler), so everything else is fix
 
 - **Backbone**: the course backbone (:func:`vpr_nb.pretrain.course_backbone`) with its last block trainable
   (VGG16's conv5 in DW-T-Loss, DINOv2's last blocks in SALAD). Aggregators read it **before its final ReLU**
-  (NetVLAD: notebook 04, untrained test R@1 0.802 before vs 0.428 after; SALAD reads the same signed
+  (NetVLAD: notebook 04, untrained test R@1 0.802 before vs 0.393 after; SALAD reads the same signed
   features, notebook 05; max pooling: frozen test R@1 0.764 before vs 0.692 after; GeM clamps at ε, so it is
   identical either way), except **mean pooling**, which reads it after the ReLU (frozen test R@1 0.654 after
   vs 0.255 before: the signed mean cancels).
