@@ -239,8 +239,9 @@ print("CE-Loss on descriptors scaled by 1e4 (naive exp would overflow):", f"{ce_
 # for all. For one training seed $s$ every row starts from the **same initial weights** and draws the same
 # mining randomness; only the loss (and the learning rate it chose) or the pooling changes.
 #
-# The course backbone is a `SmallCNN` pretrained with the Multi-Similarity loss on worlds with seeds
-# $\ge 100$ (never this notebook's world, seed 0). Its output is an 8×12 map of 128-d local features.
+# The course backbone is a `SmallCNN` pretrained with the Multi-Similarity loss (and a local contrastive term)
+# on worlds with seeds $\ge 100$ (never this notebook's world, seed 0). Its output is an 8×12 map of 128-d
+# local features.
 #
 # **NetVLAD's K.** The paper's NetVLAD-64 sees a 30×40 conv5 map of 512-d features (1200 local
 # features, about 19 per cluster) and outputs $64 \cdot 512 = 32768$ dimensions. Here a map has only

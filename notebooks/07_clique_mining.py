@@ -61,8 +61,7 @@ from vpr_nb.samplers import (CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBat
 from vpr_nb.synthetic import make_dataset
 
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
-ROUTE = {"num_facade_types": 60, "colour_variation": 0.3, "frame_spacing": 2.5, "frames_per_group": 2,
-         "roadside_spacing": 1.0, "camera_yaw": 45.0}
+ROUTE = {"num_facade_types": 60, "colour_variation": 0.3, "frame_spacing": 2.5, "frames_per_group": 2}
 WORLD = {"preset": "route", "seed": 0, "size": "tiny", "overrides": ROUTE}
 print(f"profile {PROFILE}: the tuned route {ROUTE} and the city (seed 0)")
 
@@ -115,12 +114,11 @@ print(f"profile {PROFILE}: the tuned route {ROUTE} and the city (seed 0)")
 # %% [markdown]
 # ## The worlds: a route with content near the camera
 #
-# The default tiny `route` (frames 5 m apart, 10 facade types, a camera looking along the track) has little
-# near the camera: the frame a few metres ahead is almost the same image, and the frozen course backbone's
-# failures land far away (aliased facades), where CliqueMining cannot help. We tune the route through
-# `make_dataset` overrides: more facade types and colour variation, frames 2.5 m apart, places of 2 frames,
-# and **more content per metre** (notebook 00): roadside objects every metre on each side
-# (`roadside_spacing=1`) and a camera turned 45° to the side (`camera_yaw=45`). A failure is a **near miss**
+# The default tiny `route` has frames 5 m apart, 10 facade types and **content near the camera** (notebook 00):
+# roadside objects every metre on each side (`roadside_spacing=1`) and a camera turned 45° to the side
+# (`camera_yaw=45`), so that the frame a few metres ahead is not the same image. For CliqueMining we tune it
+# through `make_dataset` overrides: more facade types and colour variation (fewer aliased far failures), frames
+# 2.5 m apart and places of 2 frames (neighbouring places are close). A failure is a **near miss**
 # when the top-1 image is not a positive but lies within 4 frames of the query; the table gives the share of
 # failures that are near misses.
 

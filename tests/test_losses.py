@@ -10,6 +10,9 @@ from pytorch_metric_learning.distances import CosineSimilarity, DotProductSimila
 from pytorch_metric_learning.losses import MultiSimilarityLoss
 from pytorch_metric_learning.miners import MultiSimilarityMiner
 
+import torch.nn.functional as F
+
+from vpr_nb import losses as L
 from vpr_nb.losses import (
     ce_triplet_loss,
     distance_weight,
@@ -543,3 +546,51 @@ def test_loss_objects_are_immutable_values():
     assert loss == L.DWTripletLoss(sigma=25.0) and repr(loss) == "DWTripletLoss(sigma=25.0, eps=0.1)"
     with pytest.raises(dataclasses.FrozenInstanceError):
         loss.sigma = 30.0
+
+
+# ------------------------------------------------------------------------------ local InfoNCE (pretraining)
+def _local_by_hand(full, shifted, offset, tau):
+    """Eq. (L) with a loop over images and anchors, the 'image' negatives."""
+    b, c, h, w = full.shape
+    ws = shifted.shape[3]
+    total, count = 0.0, 0
+    for i in range(b):
+        v = F.normalize(shifted[i].reshape(c, -1), dim=0)             # [C, h*ws]
+        for r in range(h):
+            for j in range(min(w - offset, ws)):
+                u = F.normalize(full[i, :, r, j + offset], dim=0)
+                logits = (u @ v) / tau
+                total += float(torch.logsumexp(logits, 0) - logits[r * ws + j])
+                count += 1
+    return total / count
+
+
+def test_local_infonce_is_eq_L_by_hand():
+    g = torch.Generator().manual_seed(0)
+    full = torch.randn(3, 8, 4, 6, generator=g)
+    shifted = full[:, :, :, 2:] + 0.3 * torch.randn(3, 8, 4, 4, generator=g)
+    got = L.local_infonce(full, shifted, 2, temperature=0.2)
+    assert float(got) == pytest.approx(_local_by_hand(full, shifted, 2, 0.2), rel=1e-5)
+
+
+def test_local_infonce_rewards_matching_positions_and_tells_them_apart():
+    g = torch.Generator().manual_seed(1)
+    full = torch.randn(4, 16, 8, 12, generator=g)
+    aligned = L.local_infonce(full, full[:, :, :, 3:].clone(), 3)
+    scrambled = L.local_infonce(full, torch.randn(4, 16, 8, 9, generator=g), 3)
+    assert float(aligned) < 0.1 < 3.0 < float(scrambled)
+    for negatives in L.LOCAL_NEGATIVES:                                # both forms give a gradient to both maps
+        a, b = full.clone().requires_grad_(), full[:, :, :, 3:].clone().requires_grad_()
+        L.local_infonce(a, b + 0.1, 3, negatives=negatives, max_anchors=50,
+                        generator=torch.Generator().manual_seed(0)).backward()
+        assert a.grad.abs().sum() > 0 and b.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(offset=0), "offset"), (dict(offset=12), "offset"), (dict(temperature=0.0), "temperature"),
+    (dict(negatives="all"), "negatives must be one of"), (dict(shifted=torch.zeros(2, 8, 4, 5)), "shifted must be"),
+])
+def test_local_infonce_rejects(kwargs, match):
+    args = dict(full=torch.zeros(2, 16, 4, 12), shifted=torch.zeros(2, 16, 4, 10), offset=2)
+    with pytest.raises(ValueError, match=match):
+        L.local_infonce(**{**args, **kwargs})

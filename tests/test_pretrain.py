@@ -113,3 +113,37 @@ def test_course_backbone_before_the_final_relu():
     assert torch.allclose(GeM(in_channels=128)(a), GeM(in_channels=128)(b))
     with pytest.raises(ValueError, match="final_relu"):
         pretrain.course_backbone(final_relu="no")
+
+
+def test_small_cnn_final_norm_adds_a_groupnorm_to_the_last_block():
+    plain, normed = SmallCNN(width=8, out_channels=16), SmallCNN(width=8, out_channels=16, final_norm=4)
+    assert len(normed.features) == len(plain.features) + 1
+    assert isinstance(normed.features[-2], torch.nn.GroupNorm) and normed.features[-2].num_groups == 4
+    normed.set_trainable_blocks(1)                        # the last block: the projection and its GroupNorm
+    assert [i for i, m in enumerate(normed.features) if any(p.requires_grad for p in m.parameters())] == [9, 10]
+    out = normed(torch.randn(2, 3, 32, 48))
+    assert out.shape == (2, 16, 8, 12) and (out >= 0).all()
+    with pytest.raises(ValueError, match="final_norm=3 groups must divide out_channels=16"):
+        SmallCNN(width=8, out_channels=16, final_norm=3)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(final_norm=5), "must divide out_channels"), (dict(local_negatives="all"), "local_negatives"),
+    (dict(local_weight=-1.0), "local_weight"), (dict(local_temperature=0.0), "local_temperature"),
+    (dict(local_shift=0), "local_shift"),
+])
+def test_pretrain_config_checks_the_local_feature_knobs(kw, match):
+    with pytest.raises(ValueError, match=match):
+        pretrain.PretrainConfig(**kw)
+
+
+def test_the_local_term_trains_and_is_seeded(tmp_path):
+    """A tiny corpus: one MS + local InfoNCE epoch twice gives the same weights; the term moves them."""
+    cfg = dict(city_seeds=(100,), route_seeds=(), width=8, out_channels=16, batches_per_epoch=2, epochs=1,
+               places_per_batch=4, final_norm=4, local_views=4)
+    a, _ = pretrain.pretrain(pretrain.PretrainConfig(**cfg, local_weight=0.5), progress=False)
+    b, _ = pretrain.pretrain(pretrain.PretrainConfig(**cfg, local_weight=0.5), progress=False)
+    c, _ = pretrain.pretrain(pretrain.PretrainConfig(**cfg, local_weight=0.0), progress=False)
+    sa, sb, sc = a.state_dict(), b.state_dict(), c.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert not all(torch.equal(sa[k], sc[k]) for k in sa)

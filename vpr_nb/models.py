@@ -76,8 +76,10 @@ class SmallCNN(nn.Module):
 
     Layers: a 4×4 stride-4 "patchify" conv (the convolutional twin of a ViT patch embedding) to
     ``width`` channels, two 3×3 convs (``width`` → ``width`` → ``2·width``) and a 1×1 projection to
-    ``out_channels``; each followed by ReLU, the first three by GroupNorm. The output map is
-    non-negative, as GeM (Eq. (1) of Radenović et al., TPAMI 2018) assumes.
+    ``out_channels``; each followed by ReLU, the first three by GroupNorm (and the projection too with
+    ``final_norm`` groups > 0, the course backbone's setting: each image's local features are centred and
+    scaled per group of channels before the last ReLU, so a component every position shares does not
+    dominate them). The output map is non-negative, as GeM (Eq. (1) of Radenović et al., TPAMI 2018) assumes.
 
     GroupNorm rather than BatchNorm: VPR batches hold a few places × a few views each, so batch
     statistics are strongly correlated and small; GroupNorm normalises each image on its own, trains
@@ -93,17 +95,23 @@ class SmallCNN(nn.Module):
 
     stride = 4
 
-    def __init__(self, in_channels: int = 3, width: int = 32, out_channels: int = 128, norm_groups: int = 8) -> None:
+    def __init__(self, in_channels: int = 3, width: int = 32, out_channels: int = 128, norm_groups: int = 8,
+                 final_norm: int = 0) -> None:
         super().__init__()
         self.in_channels = check_int(in_channels, "in_channels")
         width = check_int(width, "width")
         self.out_channels = check_int(out_channels, "out_channels")
         groups = check_int(norm_groups, "norm_groups")
-        self.features = nn.Sequential(
-            *_conv_gn_relu(self.in_channels, width, 4, 4, groups),
-            *_conv_gn_relu(width, width, 3, 1, groups),
-            *_conv_gn_relu(width, 2 * width, 3, 1, groups),
-            nn.Conv2d(2 * width, self.out_channels, 1), nn.ReLU(inplace=True))
+        self.final_norm = check_int(final_norm, "final_norm", minimum=0)
+        if self.final_norm and self.out_channels % self.final_norm:
+            raise ValueError(f"final_norm={final_norm} groups must divide out_channels={out_channels}")
+        layers = [*_conv_gn_relu(self.in_channels, width, 4, 4, groups),      # built in this order: the same
+                  *_conv_gn_relu(width, width, 3, 1, groups),                 # seed gives the same weights
+                  *_conv_gn_relu(width, 2 * width, 3, 1, groups),
+                  nn.Conv2d(2 * width, self.out_channels, 1)]
+        if self.final_norm:      # GroupNorm on the projection too: each image's local features centred per group
+            layers.append(nn.GroupNorm(self.final_norm, self.out_channels))
+        self.features = nn.Sequential(*layers, nn.ReLU(inplace=True))
         self.token = nn.Linear(self.out_channels, self.out_channels)
         self.num_frozen = 0                       # leading layers of ``features`` that run without autograd
         self.frozen_cache = None                  # a vpr_nb.feature_cache.FrozenFeatureCache for those layers

@@ -1,9 +1,9 @@
 """The ``"route"`` world (Nordland-like): one long railway through countryside.
 
 Trees, houses, catenary poles and fences along a smooth curvy track, in landscape zones (forest,
-field, village) that change slowly, and optionally roadside objects close to the track (more content
-per metre: ``roadside_spacing``); a camera looking forward (or ``camera_yaw`` degrees to the side)
-takes one frame every ``frame_spacing`` metres; the database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
+field, village) that change slowly, and roadside objects close to the track (more content per metre:
+``roadside_spacing``, one per metre per side by default; 0 leaves them out); a camera turned ``camera_yaw``
+degrees (45 by default; 0 looks forward) to the side takes one frame every ``frame_spacing`` metres; the database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
 (``pos_radius = 1.01 * frame_spacing``). Splits are bands of frames.
 """
 from __future__ import annotations
@@ -169,7 +169,10 @@ ROUTE = WorldKind(
                       "roadside_height", "roadside_width"}),
     preset=dict(db_condition="summer", query_conditions=("winter",), position_jitter=0.8, heading_jitter=2.0,
                 occluder_rate=0.0, split_fractions=(0.6, 0.2, 0.2), skyline_height=(10.0, 130.0),
-                skyline_blockiness=0.0),
+                skyline_blockiness=0.0,
+                # content per metre (notebook 00): roadside objects every metre per side and a camera turned 45°
+                # to the side, so that frames a few metres apart are not near-duplicates
+                roadside_spacing=1.0, camera_yaw=45.0),
     sizes={"tiny": {}, "small": {"num_frames": 3000}},
     pos_radius_frames=1.01,
     check=_check,
