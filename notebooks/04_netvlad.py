@@ -28,8 +28,8 @@
 # * initialise the layer with **k-means** (faiss) and choose the softmax sharpness $\alpha$ from the data;
 # * check that the layer derived here equals `vpr_nb.aggregation.NetVLAD` (whose parameter names load
 #   the public `pytorch-NetVlad` checkpoints);
-# * see why NetVLAD reads the backbone's features **before its last ReLU** (as the public code reads
-#   VGG16's conv5_3), and what exactly-zero local features do to it;
+# * measure whether NetVLAD should read the backbone's features **before or after its last ReLU** (the public
+#   code reads VGG16's conv5_3 before it), and what exactly-zero local features do to it;
 # * fine-tune the **course backbone** (`vpr_nb.pretrain.course_backbone`, pretrained on other synthetic
 #   worlds) with **GeM pooling** (Eq. G below) vs NetVLAD, with the same triplet pipeline and budget, on the
 #   tiny `city` world: one seed live, five seeds in the committed reproduce profile.
@@ -62,7 +62,7 @@ from vpr_nb.training import TrainConfig, TripletSource, mean_pairwise_cosine, tr
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
 EXPERIMENT = {                 # every setting of the reproduce-profile experiment (notebook 05 reuses it)
     "world": {"preset": "city", "seed": 0, "size": "tiny", "eval split": "test"},
-    "backbone": {"checkpoint sha256": card()["sha256"], "features": "before the final ReLU"},
+    "backbone": {"checkpoint sha256": card()["sha256"], "features": "after the final ReLU"},
     "trainable_blocks": {"GeM": 1, "NetVLAD": 1, "NetVLAD, frozen backbone": 0},
     "netvlad": {"clusters": 16, "vladv2": False, "kmeans": {"per_image": 20, "niter": 50, "images": "train database"}},
     "triplets": {"loss": "triplet", "margin": 0.1, "batch_size": 16, "num_negatives": 5, "num_candidates": 300,
@@ -226,15 +226,18 @@ for vladv2 in (False, True):
 # Both papers of this course fine-tune a *pretrained* backbone (NetVLAD: ImageNet VGG16, only conv5 trains).
 # Here the pretrained network is the **course backbone**: the course's `SmallCNN` (32×48 images → an 8×12
 # map of $N = 96$ local features with $D = 128$ channels), pretrained with the Multi-Similarity loss and GeM
-# on synthetic worlds with seeds $\ge 100$, never on the seed-0 world used below. `course_backbone(k)`
-# trains its last $k$ of 4 blocks (1: the final 1×1 projection, the analogue of conv5).
+# (plus a local contrastive term on the features before its last ReLU, which keeps them diverse and stable
+# across conditions) on synthetic worlds with seeds $\ge 100$, never on the seed-0 world used below.
+# `course_backbone(k)` trains its last $k$ of 4 blocks (1: the final 1×1 projection, the analogue of conv5).
 #
-# That last block ends in a **ReLU**, and many positions come out of it as exactly zero in every channel.
+# That last block ends in a **ReLU**, and some positions come out of it as exactly zero in every channel.
 # A zero vector has no direction: NetVLAD L2-normalises each local feature (it stays 0), gives it the
 # uniform assignment $\mathrm{softmax}(0) = 1/K$ (vladv1 has no bias), so every zero position adds
 # $-c_k/K$ to every cluster's residual sum, the same vector in every image. The public NetVLAD code
 # (`pytorch-NetVlad`) reads VGG16 at conv5_3 **before** its ReLU, and DINOv2's tokens (SALAD, notebook 05)
-# come out of a LayerNorm: both are signed, dense features. We read the course backbone the same way:
+# come out of a LayerNorm: both are signed, dense features. Which side serves NetVLAD better depends on the
+# backbone, so we look at both and measure below; the course recipe reads the backbone's output, after the
+# ReLU (`course_backbone()`), and `before_relu` swaps the ReLU for an identity:
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -253,7 +256,7 @@ print(f"course backbone: SmallCNN width {cfg['width']}, {cfg['out_channels']} ch
       f"{cfg['city_seeds']} and route worlds {cfg['route_seeds']}")
 
 
-def course(trainable_blocks):
+def before_relu(trainable_blocks):
     # the course backbone read before its final ReLU (as pytorch-NetVlad reads VGG16's conv5_3)
     backbone = course_backbone(trainable_blocks=trainable_blocks)
     assert isinstance(backbone.features[-1], torch.nn.ReLU)
@@ -261,23 +264,29 @@ def course(trainable_blocks):
     return backbone
 
 
+def course(trainable_blocks):
+    # the recipe's reading: the course backbone's output, after its final ReLU (measured below)
+    return course_backbone(trainable_blocks=trainable_blocks)
+
+
 with torch.no_grad():
     x = images_to_tensor(train_split.db_images)
-    after, before = course_backbone()(x), course(0)(x)             # [N, 128, 8, 12] each
+    after, before = course(0)(x), before_relu(0)(x)                # [N, 128, 8, 12] each
 zero = (after == 0).all(dim=1)                                      # positions whose every channel is 0
 print(f"after the final ReLU : {zero.float().mean():.1%} of the {zero.numel()} local features are exactly zero, "
       f"{(after > 0).float().mean():.2%} of all activations are positive")
 print(f"before the final ReLU: {(before == 0).all(dim=1).float().mean():.1%} exactly zero")
-sample = F.normalize(before.flatten(2).transpose(1, 2).reshape(-1, before.shape[1]), dim=1)
-sample = sample[torch.randperm(len(sample), generator=torch.Generator().manual_seed(0))[:2000]]
-print(f"mean cosine between two local features (before the ReLU): {mean_pairwise_cosine(sample.numpy()):.3f} "
-      f"(they share a large common component; NetVLAD's residuals to nearby centroids remove it)")
+for name, fmap in (("after", after), ("before", before)):
+    feats = F.normalize(fmap.flatten(2).transpose(1, 2).reshape(-1, fmap.shape[1]), dim=1)
+    feats = feats[feats.norm(dim=1) > 0]                            # zero features have no direction
+    sample = feats[torch.randperm(len(feats), generator=torch.Generator().manual_seed(0))[:2000]]
+    print(f"mean cosine between two local features ({name} the ReLU): {mean_pairwise_cosine(sample.numpy()):.3f}")
 
 # GeM clamps at eps, so the ReLU changes nothing for it (Eq. G): both ways give the same descriptor
 gem = GeM(in_channels=128)
 assert torch.equal(gem(after), gem(before))
 print("GeM(after the ReLU) == GeM(before the ReLU): True")
-# the package keeps this swap: course_backbone(final_relu=False), which notebook 05 uses
+# the package keeps this swap: course_backbone(final_relu=False)
 assert torch.equal(course_backbone(final_relu=False)(x), before)
 
 # %% [markdown]
@@ -332,7 +341,7 @@ print("kmeans_init by hand == vpr_nb.models.init_netvlad: True")
 # %%
 def untrained_netvlad(relu, seed=0):
     vpr_nb.seed_everything(seed)
-    backbone = course_backbone(trainable_blocks=0) if relu else course(0)
+    backbone = course(0) if relu else before_relu(0)
     model = build_model(backbone, "netvlad", num_clusters=K)
     init_netvlad(model, train_split.db_images, per_image=KM["per_image"], niter=KM["niter"], seed=seed)
     return model
@@ -359,7 +368,7 @@ for name, r in fixed.items():
 # %% [markdown]
 # ## Experiment: GeM vs NetVLAD, fine-tuned
 #
-# Both models use the course backbone read before its last ReLU with its **last block trainable** (the
+# Both models use the course backbone read after its last ReLU (the recipe) with its **last block trainable** (the
 # analogue of NetVLAD's conv5; a third row keeps the backbone **frozen** and trains only the NetVLAD layer),
 # the same weakly supervised triplet pipeline (notebook 03: each training query, its best potential
 # positive facing the same way, the 5 hardest of 300 random negatives beyond 25 m, margin 0.1), the same
@@ -476,10 +485,10 @@ def r1(name):
 
 
 PAIRS = [("NetVLAD", "GeM"), ("NetVLAD", "NetVLAD, frozen backbone"), ("GeM", "frozen backbone + GeM"),
-         ("NetVLAD", "NetVLAD k-means init, before the ReLU"),
-         ("NetVLAD, frozen backbone", "NetVLAD k-means init, before the ReLU")]
-START = {"GeM": "frozen backbone + GeM", "NetVLAD": "NetVLAD k-means init, before the ReLU",
-         "NetVLAD, frozen backbone": "NetVLAD k-means init, before the ReLU"}   # each fine-tune's starting point
+         ("NetVLAD", "NetVLAD k-means init, after the ReLU"),
+         ("NetVLAD, frozen backbone", "NetVLAD k-means init, after the ReLU")]
+START = {"GeM": "frozen backbone + GeM", "NetVLAD": "NetVLAD k-means init, after the ReLU",
+         "NetVLAD, frozen backbone": "NetVLAD k-means init, after the ReLU"}   # each fine-tune's starting point
 
 
 def verdict(a, b):
@@ -612,7 +621,7 @@ check("weak_assignment_share", [
 # %% [markdown]
 # ## Graded exercise: predict, then compute the descriptor of a switched-off image
 #
-# After the backbone's final ReLU many local features are exactly zero (the fraction was printed above).
+# After the backbone's final ReLU some local features are exactly zero (the fraction was printed above).
 # Take an image whose $N$ local features are **all** exactly zero and the layer of this notebook
 # (`vladv2=False`: the soft assignment is a softmax of $\alpha \cos(x_i, c_k)$ of the L2-normalised feature, an
 # all-zero feature stays zero after L2 normalisation; then intra-normalisation of each cluster's residual sum
@@ -697,8 +706,8 @@ check("zero_image_descriptor", [Case(f"{k} random centroids of dimension {d}", (
 #    <details><summary>Hint</summary>After <code>init_netvlad</code> (or <code>kmeans_init</code>), scale the
 #    layer's assignment weights: they are $\alpha \hat c_k$ in <code>model.aggregator.conv</code>. The graded
 #    exercise's function tells you how many descriptors each α leaves soft.</details>
-# 4. **After the ReLU.** Train `build_model(course_backbone(trainable_blocks=1), "netvlad", num_clusters=K)`
-#    (the ReLU kept) with `run`'s recipe. How much of the gap of the untrained table does training close?
+# 4. **Before the ReLU.** Train `build_model(before_relu(1), "netvlad", num_clusters=K)` (the ReLU removed,
+#    as pytorch-NetVlad reads VGG16) with `run`'s recipe. Does training close the gap of the untrained table?
 #    <details><summary>Hint</summary>Train it with the same <code>TripletSource</code> and
 #    <code>TrainConfig</code> as the experiment rows (read them in <code>run</code>), on the same seeds, and put
 #    its test R@1 beside the "after the ReLU" and "before the ReLU" rows of the untrained table.</details>

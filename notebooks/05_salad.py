@@ -255,9 +255,9 @@ except ValueError as err:
 #
 # SALAD fine-tunes DINOv2's last 4 of 12 blocks; here the backbone is the **course backbone**
 # (`vpr_nb.pretrain.course_backbone`: the course's `SmallCNN`, pretrained with the Multi-Similarity loss and
-# GeM on synthetic worlds with seeds $\ge 100$, never the seed-0 world used below) with its **last block
-# trainable**. As in notebook 04 it is read **before its final ReLU** (after the ReLU most positions are
-# exactly zero; DINOv2's tokens come out of a LayerNorm and are signed and dense too). It gives
+# GeM plus a local contrastive term, on synthetic worlds with seeds $\ge 100$, never the seed-0 world used
+# below) with its **last block trainable**. As in notebook 04 (and the course recipe) SALAD reads the
+# backbone's output, **after its final ReLU**, where notebook 04 measured NetVLAD's start to be better. It gives
 # $n = 8 \cdot 12 = 96$ local features of 128 channels and a global token (a linear layer on the mean
 # feature, the analogue of DINOv2's CLS token). SALAD is scaled down to $m = 16$ clusters of $l = 32$
 # dimensions plus a 64-D token ($n = 96 > m$): a 576-D descriptor, its MLP heads 64 wide (the paper:
@@ -282,8 +282,8 @@ print(f"generated in {time.perf_counter() - t0:.1f} s")
 
 # %%
 def course(trainable_blocks):
-    # the course backbone read before its final ReLU (notebook 04 derives why)
-    return course_backbone(trainable_blocks=trainable_blocks, final_relu=False)
+    # the recipe's reading: the course backbone's output, after its final ReLU (notebook 04 measures why)
+    return course_backbone(trainable_blocks=trainable_blocks)
 
 
 PLAN_IMAGES = test_split.q_images[:64]
@@ -642,7 +642,7 @@ record("05_salad", {
 
 # %%
 with torch.no_grad():
-    maps = course(0)(images_to_tensor(train_split.db_images))             # [N, C, h, w], before the final ReLU
+    maps = course(0)(images_to_tensor(train_split.db_images))             # [N, C, h, w], after the final ReLU
 u = F.normalize(maps.permute(0, 2, 3, 1).reshape(-1, maps.shape[1]).double(), dim=1)   # each feature's direction
 u = u[u.norm(dim=1) > 0]
 lam = torch.linalg.eigvalsh(torch.cov(u.T, correction=0)).flip(0)        # centred covariance, largest first
@@ -654,9 +654,12 @@ cos_img = (((un.sum(2) ** 2).sum(1) - n_pos) / (n_pos * (n_pos - 1))).mean().ite
 PROBE = local_feature_probe(course(0), train_split.db_images)
 assert np.isclose(pr, PROBE["effective dimension"], rtol=1e-4) and dims90 == PROBE["dims for 90% variance"]
 assert np.isclose(cos_img, PROBE["within-image cosine"], atol=1e-5)
-print(f"course backbone before its ReLU: {PROBE['features']} local features of {maps.shape[1]} channels, "
-      f"effective dimension {pr:.1f}, {dims90} dimensions hold 90% of the variance; two features of one image: "
-      f"mean cosine {cos_img:.3f}  (by hand == vpr_nb.probes.local_feature_probe)")
+print(f"course backbone after its ReLU (what SALAD reads): {PROBE['features']} local features of {maps.shape[1]} "
+      f"channels, effective dimension {pr:.1f}, {dims90} dimensions hold 90% of the variance; two features of one "
+      f"image: mean cosine {cos_img:.3f}  (by hand == vpr_nb.probes.local_feature_probe)")
+BEFORE = local_feature_probe(course_backbone(final_relu=False), train_split.db_images)
+print(f"before its ReLU (where the pretraining's local term acts): effective dimension "
+      f"{BEFORE['effective dimension']:.1f}, within-image cosine {BEFORE['within-image cosine']:.3f}")
 
 # %%
 # NBVAL_TOLERANCE=0.02   k-means and retrieval: other CPUs round a little differently

@@ -368,7 +368,7 @@ for name, shares in NEAR_DUP.items():
 #
 # **The paper's comparison** is *sparse + dense cliques* vs *sparse only*; **the mining-only ablation** is
 # *sparse + dense cliques* vs *sparse + dense random*. The model follows the course recipe: the course backbone
-# with its last block trainable + SALAD read before the ReLU with standardised head inputs (notebook 05: the
+# with its last block trainable + SALAD on its output (after the ReLU) with standardised head inputs (notebook 05: the
 # published initialisation collapses here), Adam, the starting weights as the epoch-0 candidate, the best route
 # validation epoch kept. It deviates in two places: every run trains up to 40 epochs of 50 steps (2,000 steps) and
 # stops after 8 epochs without a better validation R@1 (SALAD's heads start from scratch, and a validation curve

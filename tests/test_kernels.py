@@ -13,9 +13,9 @@ from vpr_nb.training import TrainConfig, make_optimizer
 # The fingerprint of the pinned kernels with torch 2.13.0 on x86-64, recorded on an AMD EPYC. (On an Intel Xeon the
 # native kernels trained other NetVLAD and SALAD rows; the pinned ones gave these rows' bits while oneDNN still
 # ran the convolutions, and the convolutions' own hashes without oneDNN were equal on both.)
-PINNED_FINGERPRINT = {"render": "c36f5ce5cd2919bf", "features": "868d65d712f93a68", "kmeans": "71aee2a2efb71e41",
-                      "search": "77ff50ce95150dbf", "netvlad": "3fb573e070e12a87", "salad": "bf9242ac68c98756"}
-FINGERPRINT_BACKBONE = "4e3255d7289e0554bb770958463ce081799b8bd73cf2c449c12f41ca4de896c0"   # its card's sha256
+PINNED_FINGERPRINT = {"render": "c36f5ce5cd2919bf", "features": "c8812f8c02abb5d2", "kmeans": "e596a08891f84160",
+                      "search": "8445c3bda879edef", "netvlad": "ea8c15eab8db26bb", "salad": "4025595ba05635fd"}
+FINGERPRINT_BACKBONE = "b561b563a1cbb616cc1bb3813e113de089ea41b5119b884ba0ec5840e5c662eb"   # its card's sha256
 
 
 def _python(code, env):

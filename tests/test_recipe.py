@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from vpr_nb.aggregation import SALAD
+from vpr_nb.aggregation import AGGREGATOR_NAMES, SALAD
 from vpr_nb.evaluation import images_to_tensor
 from vpr_nb.feature_cache import FrozenFeatureCache
 from vpr_nb.losses import DWTripletLoss, MultiSimilarityLoss, TripletLoss
@@ -51,7 +51,7 @@ def test_recipe_defaults_are_the_measured_ones():
     r = Recipe()
     assert (r.optimizer, r.lr, r.weight_decay, r.step_size, r.gamma) == ("adam", 1e-3, 1e-3, 5, 0.5)      # notebook 04
     assert (r.batch_size, r.margin, r.num_negatives, r.num_candidates, r.max_heading_diff) == (16, 0.1, 5, 300, 45.0)
-    assert r.trainable_blocks == 1 and r.after_relu == ("mean",)
+    assert r.trainable_blocks == 1 and set(r.after_relu) == set(AGGREGATOR_NAMES)   # notebook 04: the output
     assert r.salad_standardise and (r.salad_clusters, r.salad_cluster_dim, r.salad_token_dim) == (16, 32, 64)
     assert r.initial_candidate and r.lr in r.lr_grid and r.min_val_queries == 500
     cfg = r.train_config(3e-4, seed=2)
@@ -89,10 +89,11 @@ def test_method_grid_adds_the_paper_lr_and_describes_itself():
 
 def test_start_models_read_the_backbone_where_the_recipe_says(world):
     tr, _ = world
-    for agg, relu in (("gem", False), ("netvlad", False), ("salad", False), ("max", False), ("mean", True)):
-        model = build_start(Method(agg, agg), tr, RECIPE, seed=0)
-        assert isinstance(model.backbone.features[-1], torch.nn.ReLU) == relu, agg
-        assert model.backbone.num_frozen == 9                     # the last block (1x1 projection) trains
+    for agg in ("gem", "netvlad", "salad", "max", "mean"):
+        for recipe, relu in ((RECIPE, True), (dataclasses.replace(RECIPE, after_relu=()), False)):
+            model = build_start(Method(agg, agg), tr, recipe, seed=0)
+            assert isinstance(model.backbone.features[-1], torch.nn.ReLU) == relu, agg
+            assert model.backbone.num_frozen == 9                 # the last block (1x1 projection) trains
     netvlad = build_start(Method("n", "netvlad"), tr, RECIPE, seed=0)
     assert netvlad.aggregator.alpha > 0 and netvlad.out_dim == 16 * 128        # k-means initialised, K = 16
     # GeM gives the same descriptor before and after the ReLU (it clamps at eps)

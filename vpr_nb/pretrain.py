@@ -7,30 +7,35 @@ corpus that is **disjoint from every world a notebook evaluates on** (world seed
 ``CORPUS_SEED_BASE`` and up, never the notebooks' seeds 0–4), both presets, every condition,
 database and query images of every split, with a generic objective: the Multi-Similarity loss
 (Wang et al., CVPR 2019) over P places × K images, places being 30 m of street × 4 view directions, on the
-GeM descriptor, plus a local InfoNCE term (:func:`vpr_nb.losses.local_infonce`, Eq. L) between 32 images
-of each batch and a copy shifted by 1–2 feature columns, on the features before the last ReLU, with a
-GroupNorm of 8 groups on the last layer (``final_norm``).
+GeM descriptor, plus 0.07 × a local InfoNCE term (:func:`vpr_nb.losses.local_infonce`, Eq. L) on the features
+before the last ReLU: 32 database images per step against their **condition twins** (the same camera rendered
+under another of its world's conditions) shifted by 1–2 feature columns, every other sampled position a negative.
 
-Why the local term: trained with the MS loss alone, the backbone's local features (before the last ReLU,
-what NetVLAD and SALAD assign to clusters) spanned about 12 effective dimensions of 128 with a mean
-within-image cosine of 0.90, which leaves SALAD's optimal-transport assignment nothing to sort (notebook 05).
-Measured (frozen backbone + GeM test R@1; local-feature probe on the city seed-0 test database; share of
-route frames whose same-season neighbour 5 m ahead is closer than their winter query), unpinned kernels:
+Why the local term: trained with the MS loss alone, the backbone's local features (before the last ReLU)
+spanned about 12 effective dimensions of 128 with a mean within-image cosine of 0.90, which leaves SALAD's
+optimal-transport assignment nothing to sort (notebook 05). Measured at the full budget, unpinned kernels:
+frozen backbone + GeM test R@1 on the city and the route (seed 0); the local-feature probe on the city test
+database before / after the last ReLU; NetVLAD-16 with k-means initialisation, frozen, reading the features
+before / after the last ReLU:
 
-=============================================  ======  =======  ==========  ==========  ==============
-configuration (``--set``)                      city    route    eff. dim.   cosine      near dup. 5 m
-=============================================  ======  =======  ==========  ==========  ==============
-MS loss alone (the previous backbone)          0.714   0.520*   ≈ 12        0.90        0.63*
-final_norm=8, local_weight=0.04                0.786   0.760    26.7        0.17        0.17
-final_norm=8, local_weight=0.05                0.755   0.709    31.9        0.14        0.23
-**final_norm=8, local_weight=0.07** (default)  0.786   0.598    36.1        0.10        0.23
-6 epochs, local_weight=0.1                     0.613   0.520    55.5        0.08        0.26
-6 epochs, local_weight=0.03, "image" negatives 0.770   0.760    14.9        0.40        0.14
-=============================================  ======  =======  ==========  ==========  ==============
+=====================================================  =====  =====  ===========  ===========  ===========
+configuration                                          city   route  eff. dim.    cosine       NetVLAD
+=====================================================  =====  =====  ===========  ===========  ===========
+MS loss alone (the previous backbone; older route)     0.714  0.520  ≈ 12 / –     0.90 / –     0.802/0.437
+local term on shifted copies of the same image         0.799  0.603  35.3 / 70.9  0.10 / 0.31  0.52 /0.69
+ (+ a GroupNorm on the last layer, 8 groups; pinned)
+the same on the features after the ReLU                0.758  0.704  8.2 / 81.2   0.78 / 0.10  0.66 /0.54
+**condition twins, shifted** (the default)             0.786  0.715  45.8 / 69.6  0.11 / 0.29  0.66 /0.76
+ (the same, pinned: the committed checkpoint)           0.748  0.693  47.6 / –     0.12 / –     0.65 /0.76
+condition twins, weight 0.15                           0.648  0.637  59.7 / 72.2  0.07 / 0.32  0.67 /0.68
+=====================================================  =====  =====  ===========  ===========  ===========
 
-(* on the route without near content.) The weight trades the GeM descriptor's Recall for diverse local
-features; 0.07 is the smallest tried that gives at least 32 effective dimensions at the full budget. The
-committed checkpoint's card records its own numbers (``probes``, ``held_out``), computed pinned.
+Shifted copies of one image teach the features to tell positions apart, not to survive a change of condition:
+the route and NetVLAD suffer. Condition twins give both. Whichever side of the ReLU the local term acts on
+becomes diverse and the *other* side reads better in NetVLAD; with the term before the ReLU, NetVLAD, SALAD,
+max and mean pooling read after it (:mod:`vpr_nb.recipe`, notebook 04 measures it). A weight of 0.15 costs
+GeM a tenth of its Recall. The committed checkpoint's card records its own numbers (``probes``,
+``held_out``), computed with the pinned kernels.
 
     python -m vpr_nb.pretrain                                             # the committed checkpoint (vpr_nb/weights/)
     python -m vpr_nb.pretrain --profile quick --out /tmp/cb.pt            # a 20-second smoke run
@@ -84,13 +89,14 @@ class PretrainConfig:
     seed: int = 0
     # richer local features (what NetVLAD and SALAD assign to clusters): a GroupNorm on the projection and a
     # local InfoNCE term between each image and a shifted crop of it (vpr_nb.losses.local_infonce)
-    final_norm: int = 8               # GroupNorm groups on the 1x1 projection (0: none)
-    local_weight: float = 0.07        # weight of the local term beside the MS loss (0: off); the choice: README
+    final_norm: int = 0               # GroupNorm groups on the 1x1 projection (0: none)
+    local_weight: float = 0.07        # weight of the local term beside the MS loss (0: off); the choice: above
 
     local_shift: int = 2              # the crop drops 1..local_shift feature columns (4 px each) on the left
     local_temperature: float = 0.1
     local_negatives: str = "batch"    # "image": the other positions of the same image; "batch": of every image
-    local_views: int = 32             # images of each batch that get a shifted view
+    local_views: int = 32             # image pairs per step for the local term
+    local_twins: bool = True          # the second view: the same camera under another condition (then shifted)
 
     def __post_init__(self):
         for name in ("city_seeds", "route_seeds"):
@@ -140,21 +146,30 @@ def place_labels(ds, spots_per_place: int) -> np.ndarray:
     return np.unique(keys, axis=0, return_inverse=True)[1].ravel()
 
 
-def build_corpus(cfg: PretrainConfig, progress: bool = True):
-    """(uint8 images (N, H, W, 3), int64 place labels (N,)) of every corpus world, all splits."""
+def build_corpus(cfg: PretrainConfig, progress: bool = True, twins: bool = False):
+    """uint8 images (N, H, W, 3) and int64 place labels (N,) of every corpus world, all splits, and with
+    ``twins`` their **condition twins** for the local term: every database image rendered again from the same
+    camera under each of its world's query conditions. Returns (images, labels, (twin_of, twin_images)):
+    ``twin_images[i]`` shows what ``images[twin_of[i]]`` shows, from the same camera, under another condition
+    (None without twins)."""
     from tqdm.auto import tqdm
 
     from .synthetic import make_dataset
 
     worlds = [("city", s) for s in cfg.city_seeds] + [("route", s) for s in cfg.route_seeds]
-    images, labels, offset = [], [], 0
+    images, labels, offset, start, twin_of, twin_images = [], [], 0, 0, [], []
     for preset, seed in tqdm(worlds, desc="rendering corpus", disable=not progress, leave=False):
         ds = make_dataset(preset, seed=seed, size=cfg.world_size)
         lab = place_labels(ds, cfg.spots_per_place)
         images += [ds.db_images, ds.q_images]
         labels.append(lab + offset)
         offset += int(lab.max()) + 1
-    return np.concatenate(images), np.concatenate(labels)
+        for cond in (c for c in ds.config.query_conditions if twins and c != ds.config.db_condition):
+            twin_images.append(make_dataset(preset, seed=seed, size=cfg.world_size, db_condition=cond).db_images)
+            twin_of.append(start + np.arange(len(ds.db_images)))        # the same cameras, in the same order
+        start += len(ds.db_images) + len(ds.q_images)
+    pairs = (np.concatenate(twin_of), np.concatenate(twin_images)) if twin_images else None
+    return np.concatenate(images), np.concatenate(labels), pairs
 
 
 def _split(preset: str, seed: int, split: str):
@@ -180,11 +195,12 @@ def held_out_recalls(backbone, ns=(1, 5, 10)) -> dict[str, dict]:
     return out
 
 
-def _local_term_source(images, batches, cfg: PretrainConfig):
+def _local_term_source(images, batches, cfg: PretrainConfig, twins=None):
     """The pretraining's batch source: the MS loss over P x K place batches, plus (``cfg.local_weight`` > 0) the
-    local InfoNCE term of :func:`vpr_nb.losses.local_infonce` on the first ``cfg.local_views`` images of each
-    batch and a copy of them cropped by 1..``cfg.local_shift`` feature columns (drawn per step from the
-    epoch's generator), both read before the backbone's final ReLU."""
+    local InfoNCE term of :func:`vpr_nb.losses.local_infonce` on ``cfg.local_views`` image pairs per step, both
+    read before the backbone's final ReLU: each pair is an image and its condition twin (``twins`` = (twin_of,
+    twin_images), :func:`build_corpus`; without twins the image itself), the second one cropped by
+    1..``cfg.local_shift`` feature columns (drawn per step from the epoch's generator)."""
     import torch.nn.functional as F
 
     from .evaluation import images_to_tensor
@@ -206,11 +222,17 @@ def _local_term_source(images, batches, cfg: PretrainConfig):
                 labels = torch.arange(batch.shape[0], device=emb.device).repeat_interleave(batch.shape[1])
                 same = F.normalize(torch.ones_like(emb.detach()), dim=1)
                 self.last_collapsed_loss = float(self.loss(same, labels))
-                k = min(cfg.local_views, len(x))
                 offset = int(rng.integers(1, cfg.local_shift + 1))
-                shifted = features[:-1](x[:k, :, :, SmallCNN.stride * offset:])
+                if twins is None:
+                    k = min(cfg.local_views, len(x))
+                    first, second = pre[:k], x[:k]
+                else:
+                    pick = rng.integers(0, len(twins[0]), cfg.local_views)
+                    first = features[:-1](images_to_tensor(self.x[twins[0][pick]]).to(device))
+                    second = images_to_tensor(twins[1][pick]).to(device)
+                shifted = features[:-1](second[:, :, :, SmallCNN.stride * offset:])
                 gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                local = local_infonce(pre[:k], shifted, offset, cfg.local_temperature, cfg.local_negatives,
+                local = local_infonce(first, shifted, offset, cfg.local_temperature, cfg.local_negatives,
                                       generator=gen)
                 yield self.loss(emb, labels) + cfg.local_weight * local
 
@@ -255,7 +277,7 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> tuple[SmallCNN, dict
     from .training import TrainConfig, train
 
     t0 = time.perf_counter()
-    images, labels = build_corpus(cfg, progress)
+    images, labels, twins = build_corpus(cfg, progress, twins=cfg.local_weight > 0 and cfg.local_twins)
     render_s = time.perf_counter() - t0
     vpr_nb.seed_everything(cfg.seed)
     backbone = SmallCNN(width=cfg.width, out_channels=cfg.out_channels, final_norm=cfg.final_norm)
@@ -265,13 +287,14 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> tuple[SmallCNN, dict
         return random_place_batches(labels, cfg.places_per_batch, cfg.images_per_place,
                                     num_batches=cfg.batches_per_epoch, seed=rng)
 
-    source = _local_term_source(images, batches, cfg)
+    source = _local_term_source(images, batches, cfg, twins)
     tcfg = TrainConfig(epochs=cfg.epochs, optimizer="adam", lr=cfg.lr, weight_decay=0.0,
                        step_size=cfg.step_size, gamma=0.5, seed=cfg.seed, ns=(1, 5), device="cpu")
     sel = _split(*SELECTION_WORLD)
     t1 = time.perf_counter()
     hist = train(model, source, sel, tcfg, progress=progress)
     info = {"corpus": {"images": int(len(images)), "places": int(labels.max() + 1),
+                       "condition twins": 0 if twins is None else int(len(twins[0])),
                        "render_seconds": round(render_s, 1)},
             "train_seconds": round(time.perf_counter() - t1, 1),
             "selection": {"world": " ".join(map(str, SELECTION_WORLD)), "best_epoch": hist.best_epoch,

@@ -4,8 +4,9 @@ Two measurements, each testing one paper's premise on the course's data:
 
 **Local-feature probe** (SALAD's premise: many *diverse* local features to assign to clusters).
 The local features are the C-vectors ``f_{b,p}`` of a backbone's output map ``[B, C, h, w]`` at every
-position p of every image b (for the course backbone read them *before* its final ReLU:
-``course_backbone(final_relu=False)``, what NetVLAD and SALAD read).
+position p of every image b: ``course_backbone()`` gives its output (after the final ReLU, what the recipe's
+NetVLAD and SALAD read), ``course_backbone(final_relu=False)`` the features before that ReLU (where the
+pretraining's local term acts).
 
 * :func:`effective_dimension` -- pool the features of all images and positions into ``N = B·h·w`` rows;
   by default (``normalize=True``) each row is L2-normalised to its direction ``u = f / |f|`` (what
@@ -165,7 +166,7 @@ def local_feature_probe(backbone: torch.nn.Module, images, variance: float = 0.9
     """The local-feature probe of ``backbone`` on ``images`` (e.g. a split's database and queries):
     ``{"effective dimension", "dims for 90% variance", "within-image cosine", "features"}``
     (normalised, centred Eq. 1; uncentred cosine). Pass ``course_backbone(final_relu=False)`` to read
-    the course backbone before its final ReLU."""
+    the course backbone before its final ReLU, ``course_backbone()`` for its output."""
     maps = local_feature_maps(backbone, images)
     ed = effective_dimension(maps, variance=variance)
     return {"effective dimension": ed.participation_ratio, f"dims for {100 * ed.variance:g}% variance": ed.dims,

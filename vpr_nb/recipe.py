@@ -4,11 +4,13 @@ Each paper fine-tunes a pretrained backbone with its own aggregator and loss; wh
 the *method* (a loss, an aggregator, a batch sampler), so everything else is fixed here, once:
 
 - **Backbone**: the course backbone (:func:`vpr_nb.pretrain.course_backbone`) with its last block trainable
-  (VGG16's conv5 in DW-T-Loss, DINOv2's last blocks in SALAD). Aggregators read it **before its final ReLU**
-  (NetVLAD: notebook 04, untrained test R@1 0.802 before vs 0.393 after; SALAD reads the same signed
-  features, notebook 05; max pooling: frozen test R@1 0.764 before vs 0.692 after; GeM clamps at ε, so it is
-  identical either way), except **mean pooling**, which reads it after the ReLU (frozen test R@1 0.654 after
-  vs 0.255 before: the signed mean cancels).
+  (VGG16's conv5 in DW-T-Loss, DINOv2's last blocks in SALAD). Every aggregator reads its **output, after its
+  final ReLU** (``after_relu``): the backbone is pretrained with a local contrastive term on the features
+  before that ReLU (:mod:`vpr_nb.pretrain`), and measured on it, NetVLAD's k-means start reads the output
+  better (notebook 04's untrained table, before vs after the ReLU), as does mean pooling (its signed mean
+  cancels); max pooling and GeM give the same descriptor either way. SALAD reads what NetVLAD reads (notebook
+  05). The public NetVLAD code reads VGG16's conv5_3 before its ReLU: the right side is an empirical question
+  for each backbone, which notebook 04 asks.
 - **Heads initialised from data**: NetVLAD by k-means (:func:`vpr_nb.models.init_netvlad`, 20 features per
   training-database image, 50 iterations, the training seed); SALAD with standardised head inputs
   (:func:`vpr_nb.models.init_salad`; the published initialisation collapses here, notebook 05).
@@ -57,7 +59,8 @@ class Recipe:
 
     # backbone and how the aggregators read it
     trainable_blocks: int = 1                    # the last block trains (VGG16 conv5 / DINOv2's last blocks)
-    after_relu: tuple[str, ...] = ("mean",)      # aggregators reading the final ReLU's output; others read before it
+    after_relu: tuple[str, ...] = ("max", "mean", "gem", "netvlad", "salad")   # read the final ReLU's output
+                                                 # (the others read before it; notebook 04 measures NetVLAD)
     # triplet batches (notebook 04)
     batch_size: int = 16
     margin: float = L.DEFAULT_MARGIN
