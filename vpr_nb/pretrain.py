@@ -87,11 +87,10 @@ class PretrainConfig:
     lr: float = 2e-3                  # Adam; StepLR halves it every step_size epochs
     step_size: int = 4
     seed: int = 0
-    # richer local features (what NetVLAD and SALAD assign to clusters): a GroupNorm on the projection and a
-    # local InfoNCE term between each image and a shifted crop of it (vpr_nb.losses.local_infonce)
-    final_norm: int = 0               # GroupNorm groups on the 1x1 projection (0: none)
+    # richer local features (what NetVLAD and SALAD assign to clusters): a local InfoNCE term between each image
+    # and a shifted crop of its condition twin (vpr_nb.losses.local_infonce); optionally a GroupNorm on the projection
+    final_norm: int = 0               # GroupNorm groups on the 1x1 projection (0: none; tried, not kept: above)
     local_weight: float = 0.07        # weight of the local term beside the MS loss (0: off); the choice: above
-
     local_shift: int = 2              # the crop drops 1..local_shift feature columns (4 px each) on the left
     local_temperature: float = 0.1
     local_negatives: str = "batch"    # "image": the other positions of the same image; "batch": of every image
