@@ -31,7 +31,7 @@
 #   DINOv2's last blocks) and compare it with GeM and NetVLAD under the course recipe, at their usual
 #   descriptor sizes and at equal size (512-D): one seed live, five seeds in the committed reproduce profile;
 # * measure whether the trained Sinkhorn plan is **non-uniform** (distinct cluster vectors, low
-#   per-feature entropy) and what makes SALAD start collapsed on this backbone.
+#   per-feature entropy), what makes SALAD start collapsed on this backbone, and why it does not win here.
 
 # %% tags=["parameters", "grade-deps:ex-05-cluster-means"]
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
@@ -364,17 +364,20 @@ for name, r in init_stats.items():
     print(f"{name:42s}" + "".join(f"{r[c]:17.3f}" for c in cols))
 
 # %% [markdown]
-# **Why SALAD starts collapsed here.** The local features share a large common component (their mean
-# pairwise cosine above). SALAD has no centroid residual (Eq. 4 sums the projected features themselves,
-# NetVLAD's Eq. 4 sums $x_i - c_k$), so with the default initialisation every projected feature $f_i$ points
-# the same way, every cluster vector $V_{\cdot k}$ is the same average, and all images get nearly the same
-# descriptor: moving mass between clusters changes nothing, and the score head starts without a useful
-# gradient. NetVLAD escapes this through its data-dependent initialisation (k-means centroids, notebook 04).
-# The analogue for SALAD, used in the row "SALAD" below, changes no architecture and no state-dict entry:
-# the first $1\times1$ convolution of the score and feature heads is rescaled so that it sees each channel
-# standardised with the training-database statistics (`standardise_inputs`). DINOv2's features need no such
-# step in the paper: they come out of a LayerNorm and are far more diverse. The row "SALAD, paper init"
-# trains the published initialisation with the same recipe, to measure what the step is worth.
+# **Why SALAD starts collapsed here.** The recipe reads the backbone after its last ReLU, so every local
+# feature is non-negative and all of them share a component (their mean pairwise cosine above). SALAD has no
+# centroid residual (Eq. 4 sums the projected features themselves, NetVLAD's Eq. 4 sums $x_i - c_k$), so with
+# the default initialisation the shared component dominates every projected feature $f_i$ ("f cosine" close
+# to 1 in the table), every cluster vector $V_{\cdot k}$ is nearly the same average, and all images get
+# nearly the same descriptor. NetVLAD escapes this through its data-dependent initialisation (k-means
+# centroids, notebook 04). The analogue for SALAD, used in the row "SALAD" below, changes no architecture and
+# no state-dict entry: the first $1\times1$ convolution of the score and feature heads is rescaled so that it
+# sees each channel standardised with the training-database statistics (`standardise_inputs`). It spreads
+# the projected features (f cosine about half) and starts a little higher in R@1; the score head is still
+# random, so both starts spread each feature's mass almost evenly over the clusters (entropy close to
+# $\log m$) and their cluster vectors stay nearly equal until training. DINOv2's features need no such step
+# in the paper: they come out of a LayerNorm, signed and far more diverse. The row "SALAD, paper init" trains
+# the published initialisation with the same recipe, to measure what the step is worth after training.
 #
 # The last row of the table above is the published initialisation on a **randomly initialised** SmallCNN,
 # without any pretraining: its cluster vectors are just as identical (cluster cosine 1.000), the same
@@ -629,7 +632,7 @@ record("05_salad", {
 
 
 # %% [markdown]
-# ## Why GeM can win here: a probe of the local features
+# ## Why SALAD does not win here: a probe of the local features
 #
 # SALAD's premise is many *diverse* local features for the transport to share out among clusters. Two numbers
 # say how much diversity the course backbone gives (`vpr_nb.probes`): the **effective dimension** of its local
@@ -674,13 +677,15 @@ for name, r in SWEEP.items():
     print(f"{name:20s}{r['dim']:6d}" + "".join(f"{r[f'R@{n}']:8.3f}" for n in NS))
 
 # %% [markdown]
-# Both sides show. The features are far from diverse: about 12 effective dimensions of 128, and two features
-# of one image point almost the same way (mean cosine 0.90): most of each feature is a component its whole
-# image shares. Yet, frozen, recall still rises with the number of clusters, from NetVLAD-2 far below GeM to
-# NetVLAD-32 above it. One reason is in NetVLAD's formula: it sums *residuals* to k-means centroids, which
-# removes what the features share, where GeM's average keeps it. Trained, though, the committed table puts
-# GeM first, and the equal-size rows separate the descriptor size from the assignment: at 512-D, SALAD-4 and
-# NetVLAD-4 end level, both below GeM's 128-D.
+# The features are diverse: read after the ReLU (what SALAD and NetVLAD read), they span about 69 effective
+# dimensions of 128 (before the ReLU, where the pretraining's local term acts, about 49), and two features of
+# one image have mean cosine 0.29. Frozen, recall rises with the number of clusters, from NetVLAD-2 far below
+# GeM to NetVLAD-16 level with it (32 adds nothing): the features give an assignment something to sort, and
+# the trained NetVLAD-16 uses it (the committed table puts it first). So the features are not what holds
+# SALAD back. Its own rows show what does: its score head starts random (start R@1 about 0.42, where
+# NetVLAD's k-means start is at 0.75, "start R@1" column), and training leaves its plan close to uniform
+# (entropy / log m 0.99 → 0.96, cluster cosine 0.99 → 0.77 in the plan table): from 554 training queries the
+# heads learn little assignment. SALAD's heads train on GSV-Cities' tens of thousands of places.
 
 # %% [markdown]
 # ## Graded exercise: Eq. (4) without intra-normalisation
@@ -851,8 +856,16 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 #    (`sd = 1`), then only the scaling (`mu = 0`), and compare the untrained plan statistics and one epoch of
 #    training. Which of the two removes the collapse?
 #    <details><summary>Hint</summary>Copy <code>standardise_inputs</code> and replace <code>sd</code> by ones
-#    (then <code>mu</code> by zeros) before the fold; <code>plan_stats(model)</code> prints the cluster cosine
-#    that tells a collapsed start (1.000) from a working one.</details>
+#    (then <code>mu</code> by zeros) before the fold; <code>plan_stats(model)</code> prints the f cosine that
+#    tells a collapsed start (above 0.9) from a spread one (about 0.5).</details>
+# 7. **A data-driven start for the score head.** The probe section ties SALAD's place to its random score head.
+#    Initialise the score head's last layer from k-means centroids of the projected features (as
+#    `init_netvlad` does for NetVLAD) and train on the table's seeds: does SALAD's start R@1 rise towards
+#    NetVLAD's, and does its trained row?
+#    <details><summary>Hint</summary>Run the model's score head up to its last layer on the training database's
+#    features, cluster them with <code>vpr_nb.aggregation.kmeans_centroids</code>, and set the last layer's
+#    weights to the centroids (times a scale, as α in notebook 04's Eq. 6); compare with
+#    <code>results.gated_verdict</code> against the SALAD row.</details>
 #
 # ## Takeaways
 #
@@ -864,35 +877,33 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 # * SALAD = MLP scores + optimal-transport assignment + MLP features, summed without centroid residuals,
 #   intra-normalised, concatenated with a global token (Eqs. 4-5); `vpr_nb.aggregation.SALAD` computes Eq. (4)
 #   as one batched product and loads the published DINOv2-SALAD aggregator weights by name.
-# * **With the published initialisation SALAD collapses on the course backbone**, as it does on a
-#   from-scratch CNN (the untrained table): the local features share a large common component, every projected feature points the
-#   same way, the cluster vectors are identical (cosine 1) before *and* after training, and every image gets
-#   nearly the same descriptor ("SALAD, paper init" rows). Without a residual to a centroid nothing removes the
-#   common part; NetVLAD's k-means initialisation does it for NetVLAD.
-# * Standardising the features that SALAD's first layers see (a data-dependent initialisation folded into their
-#   weights; no architecture or state-dict change) removes the collapse: **after training the plan is
-#   non-uniform**, the cluster vectors are distinct (cosine well below 1) and each feature's mass leans on
-#   fewer clusters (entropy below $\log m$), where the paper-init plan stays uniform (plan-statistics tables);
-#   recall rises far above the paper init (+0.392 ± 0.027, verdict).
+# * **With the published initialisation SALAD starts collapsed on the course backbone**, as on a
+#   from-scratch CNN (the untrained table): the projected features point the same way (f cosine 0.92), the
+#   cluster vectors are identical (cosine 1.000) and every image gets nearly the same descriptor. Without a
+#   residual to a centroid nothing removes the component all features share; NetVLAD's k-means start does it
+#   for NetVLAD. Standardising the features that SALAD's first layers see (folded into their weights; no
+#   architecture or state-dict change) spreads them (f cosine 0.46). On this backbone training escapes the
+#   collapse either way: the paper-init row ends with distinct cluster vectors (cosine 0.90) and level with
+#   the standardised one (+0.018 ± 0.021, within 2 SE), so the step is a better start, not a better end.
 # * **Under the course recipe every triplet-trained row beats its own start** (controls), each trained until
-#   validation stopped improving (best epochs 1-18 of up to 24, the table). **At their usual sizes GeM (128-D)
-#   leads, NetVLAD-16 (2048-D) is second and SALAD (576-D) third** (SALAD − NetVLAD = −0.053 ± 0.013,
-#   NetVLAD − GeM = −0.044 ± 0.011): the order of the literature on DINOv2 reversed.
-# * **At equal size the assignment makes no measurable difference**: SALAD-4 and NetVLAD-4 (512-D, 4 clusters
-#   each) end level (−0.006 ± 0.011, within 2 SE), both about 9 points below GeM-128. Size helps NetVLAD
-#   (16 clusters over 4: +0.044 ± 0.007) but not SALAD (576-D with 16 clusters vs 512-D with 4: within 2 SE).
-#   SALAD's trained plan is non-uniform (cluster cosine 0.44, entropy 0.84 of $\log m$), so the optimal
-#   transport does act; it just does not separate places better than NetVLAD's softmax on these features.
-# * **The course backbone's local features are not diverse** (probe): about 12 effective dimensions of 128,
-#   and two features of one image have mean cosine 0.90. That is consistent with the trained table, where one
-#   pooled vector beats every clustered descriptor: there is little for clusters to tell apart. Frozen,
-#   NetVLAD still gains from more clusters (2 to 32, the sweep), so more clusters are not useless, only not
-#   enough to beat a fine-tuned GeM. The paper's heads train on DINOv2 features over GSV-Cities' tens of
-#   thousands of places, not on 554 training queries of a procedural city.
-# * The paper's loss and batches do not transfer to this tiny world: the Multi-Similarity loss on random
-#   P × K place batches leaves GeM at the frozen backbone's level (its control fails, +0.002 ± 0.005) and trains
-#   SALAD far worse than hard-negative triplets (−0.259 ± 0.010; best epochs 1-4). Random places are mostly
-#   easy negatives here, and "places" have to be built from geotags.
+#   validation stopped improving (best epochs 1-16 of up to 24, the table). **At their usual sizes NetVLAD-16
+#   (2048-D) leads, GeM (128-D) is second and SALAD (576-D) third**: NetVLAD − GeM = +0.041 ± 0.006,
+#   SALAD − GeM = −0.052 ± 0.015, SALAD − NetVLAD = −0.093 ± 0.019. NetVLAD above GeM is the literature's
+#   order; SALAD's place is not.
+# * **At equal size the assignment matters, in NetVLAD's favour**: NetVLAD-4 beats SALAD-4 (512-D, 4 clusters
+#   each; −0.038 ± 0.010) and is level with GeM-128 (within 2 SE). Size helps NetVLAD (16 clusters over 4:
+#   +0.052 ± 0.013) but not SALAD (576-D with 16 clusters vs 512-D with 4: within 2 SE).
+# * **The local features are diverse, SALAD's learned assignment is not** (probe and plan table): after the
+#   ReLU the features span about 69 effective dimensions with a within-image cosine of 0.29, and a frozen
+#   NetVLAD gains from 2 to 16 clusters (0.657 → 0.758). SALAD's score head starts random (start R@1 0.42 vs
+#   NetVLAD's k-means start 0.75) and its trained plan stays near uniform (entropy 0.96 of $\log m$, cluster
+#   cosine 0.77). The paper's heads train on DINOv2 features over GSV-Cities' tens of thousands of places,
+#   not on 554 training queries of a procedural city.
+# * The paper's loss and batches: the Multi-Similarity loss on random P × K place batches trains SALAD level
+#   with hard-negative triplets (+0.016 ± 0.022, within 2 SE) and sharpens its plan the most (entropy 0.86,
+#   cluster cosine 0.51), but never moves GeM from its start (best epoch 0 on every seed; its control fails,
+#   so the GeM comparison is inconclusive). Random places are mostly easy negatives here, and "places" have to
+#   be built from geotags.
 # * The live CI numbers come from one epoch on one seed: a smoke test. Compare methods with the committed
 #   tables and their verdicts.
 
@@ -907,10 +918,12 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 #    <details><summary>Answer</summary>Each cluster must receive mass 1 and each feature gives mass 1, so the
 #    dustbin receives $n - m$: with $n \le m$ that is zero or negative and the marginals are infeasible (the
 #    library refuses a 64-feature map for 64 clusters).</details>
-# 3. Why does SALAD with the published initialisation collapse on the course backbone, and what removes it?
-#    <details><summary>Answer</summary>The local features share a large common component, so every projected
-#    feature points the same way and the cluster vectors are identical; there is no residual to a centroid to
-#    remove it. Standardising the features the first layers see (folded into their weights) removes it.</details>
+# 3. Why does SALAD with the published initialisation start collapsed on the course backbone, and what removes it?
+#    <details><summary>Answer</summary>The local features (after the ReLU, non-negative) share a component, so
+#    every projected feature points nearly the same way and the cluster vectors are identical; there is no
+#    residual to a centroid to remove it. Standardising the features the first layers see (folded into their
+#    weights) spreads them; on this backbone training also escapes the collapse from the published start, and
+#    the two end level.</details>
 
 # %% [markdown]
 # ## References
