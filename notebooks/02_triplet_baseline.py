@@ -336,7 +336,7 @@ plt.show()
 # ### Test Recall@N against the baselines
 #
 # The last row is the **course backbone** (`vpr_nb.pretrain.course_backbone()`), frozen, with GeM: a
-# wider SmallCNN (48 channels, a GroupNorm on its last layer too) pretrained once on other synthetic worlds
+# wider SmallCNN (48 channels) pretrained once on other synthetic worlds
 # (world seeds ≥ 100, both presets, all conditions; never this world) with the Multi-Similarity loss on its
 # GeM descriptors plus a local contrastive term that keeps its local features diverse (what NetVLAD and
 # SALAD need, notebooks 04–05), the course's stand-in for the
