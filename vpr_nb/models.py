@@ -79,7 +79,8 @@ class SmallCNN(nn.Module):
     ``out_channels``; each followed by ReLU, the first three by GroupNorm (and the projection too with
     ``final_norm`` groups > 0: each image's local features are centred and scaled per group of channels
     before the last ReLU, so a component every position shares cannot dominate them; tried for the course
-    backbone and not kept, see :mod:`vpr_nb.pretrain`). The output map is non-negative, as GeM (Eq. (1) of Radenović et al., TPAMI 2018) assumes.
+    backbone and not kept, see :mod:`vpr_nb.pretrain`). The output map is non-negative, as GeM (Eq. (1) of
+    Radenović et al., TPAMI 2018) assumes.
 
     GroupNorm rather than BatchNorm: VPR batches hold a few places × a few views each, so batch
     statistics are strongly correlated and small; GroupNorm normalises each image on its own, trains
