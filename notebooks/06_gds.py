@@ -416,7 +416,7 @@ plt.show()
 #   which leaves every ranking and so $p$ unchanged (the graded exercise and exercise 5). The printed bin
 #   means show the curvature: the raw-pixel distance rises from 0 to 5 m and then stays flat, the frozen
 #   backbone's rises up to 15 m. The straight-line prediction of Eq. (4) misses the measured $p(0, 10)$ of
-#   every model several times over (its row in the tables): a single slope over 0–30 m, even standardised,
+#   every model by a factor of 2.5 to 13 (its row in the tables): a single slope over 0–30 m, even standardised,
 #   is no ranking of descriptors at small distances.
 
 # %% [markdown]
@@ -625,10 +625,10 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 #   rankings depend on.
 # * The slope of Eq. (2) is not scale-free (a rescaling of the distances changes it and no ranking), and
 #   profiles are curved, so even the standardised straight line of Eq. (4) misjudges $p(0, 10)$ for every
-#   model several times over (committed table).
+#   model, by a factor of 2.5 to 13 (committed table).
 # * With positives one frame wide, $p(0, 10)$ caps R@1 near $(1-p)^2$, Eq. (5). On this route's content the
 #   caps are far above every model's R@1 (triplets: 0.956 vs 0.802) and most wrong top-1s are far away: the
-#   route now tests recognising a place across seasons more than ordering neighbouring frames.
+#   route tests recognising a place across seasons more than ordering neighbouring frames.
 # * What the loss compares decides the sensitivity: triplets with negatives 10 m away halve $p(0, 10)$ against
 #   the frozen backbone and add about 11 points of R@1; Multi-Similarity batches of 25 m places never improve on
 #   the start at any learning rate (their control fails, so the two arms are not ranked). CliqueMining
