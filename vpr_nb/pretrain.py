@@ -195,45 +195,32 @@ def held_out_recalls(backbone, ns=(1, 5, 10)) -> dict[str, dict]:
 
 
 def _local_term_source(images, batches, cfg: PretrainConfig, twins=None):
-    """The pretraining's batch source: the MS loss over P x K place batches, plus (``cfg.local_weight`` > 0) the
-    local InfoNCE term of :func:`vpr_nb.losses.local_infonce` on ``cfg.local_views`` image pairs per step, both
-    read before the backbone's final ReLU: each pair is an image and its condition twin (``twins`` = (twin_of,
-    twin_images), :func:`build_corpus`; without twins the image itself), the second one cropped by
-    1..``cfg.local_shift`` feature columns (drawn per step from the epoch's generator)."""
-    import torch.nn.functional as F
-
+    """The pretraining's batch source: the MS loss over P x K place batches (:class:`vpr_nb.training.PlaceBatchSource`),
+    plus (``cfg.local_weight`` > 0) the local InfoNCE term of :func:`vpr_nb.losses.local_infonce` on
+    ``cfg.local_views`` image pairs per step, read before the backbone's final ReLU: each pair is a corpus image
+    and its condition twin (``twins`` = (twin_of, twin_images), :func:`build_corpus`; without twins the image
+    itself), the second one cropped by 1..``cfg.local_shift`` feature columns (drawn per step from the epoch's
+    generator)."""
     from .evaluation import images_to_tensor
     from .losses import MultiSimilarityLoss, local_infonce
     from .training import PlaceBatchSource
 
     class LocalContrastSource(PlaceBatchSource):
         def steps(self, model, rng, shard=(0, 1), device=None):
-            if cfg.local_weight == 0:
-                yield from super().steps(model, rng, shard, device)
-                return
-            if shard != (0, 1):
+            if cfg.local_weight and shard != (0, 1):
                 raise ValueError("the local term of the course backbone's pretraining runs in one process")
-            features = model.backbone.features
-            for batch in np.asarray(self.make_batches(model, self.epoch, rng)):
-                x = images_to_tensor(self.x[batch.reshape(-1)]).to(device)
-                pre = features[:-1](x)                                    # before the final ReLU
-                emb = F.normalize(model.aggregator(F.relu(pre)), dim=1)   # what model(x) returns
-                labels = torch.arange(batch.shape[0], device=emb.device).repeat_interleave(batch.shape[1])
-                same = F.normalize(torch.ones_like(emb.detach()), dim=1)
-                self.last_collapsed_loss = float(self.loss(same, labels))
-                offset = int(rng.integers(1, cfg.local_shift + 1))
-                if twins is None:
-                    k = min(cfg.local_views, len(x))
-                    first, second = pre[:k], x[:k]
-                else:
-                    pick = rng.integers(0, len(twins[0]), cfg.local_views)
-                    first = features[:-1](images_to_tensor(self.x[twins[0][pick]]).to(device))
-                    second = images_to_tensor(twins[1][pick]).to(device)
-                shifted = features[:-1](second[:, :, :, SmallCNN.stride * offset:])
-                gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
-                local = local_infonce(first, shifted, offset, cfg.local_temperature, cfg.local_negatives,
-                                      generator=gen)
-                yield self.loss(emb, labels) + cfg.local_weight * local
+            for loss in super().steps(model, rng, shard, device):
+                yield loss + cfg.local_weight * self.local_term(model, rng, device) if cfg.local_weight else loss
+
+        def local_term(self, model, rng, device):
+            before_relu = model.backbone.features[:-1]
+            offset = int(rng.integers(1, cfg.local_shift + 1))
+            pick = rng.integers(0, len(twins[0]) if twins is not None else len(self.x), cfg.local_views)
+            anchors, views = (twins[0][pick], twins[1][pick]) if twins is not None else (pick, self.x[pick])
+            first = before_relu(images_to_tensor(self.x[anchors]).to(device))
+            shifted = before_relu(images_to_tensor(views).to(device)[:, :, :, SmallCNN.stride * offset:])
+            gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+            return local_infonce(first, shifted, offset, cfg.local_temperature, cfg.local_negatives, generator=gen)
 
     return LocalContrastSource(images, batches, loss=MultiSimilarityLoss())   # alpha 1, beta 50, base 0, miner 0.1
 
@@ -244,8 +231,8 @@ PROBE_WORLDS = {"local features": ("city", 0, "test"), "near duplicates": ("rout
 def backbone_probes(backbone: SmallCNN) -> dict:
     """The probes of :mod:`vpr_nb.probes` for the card, on the notebooks' test splits (:data:`PROBE_WORLDS`):
     the local features before the final ReLU on the city's database images (effective dimension, Eq. 1, and
-    within-image cosine; issue targets >= 32 and <= 0.5) and the near-duplicate rate on the route at 5 and
-    10 m, raw pixels and frozen backbone + GeM (targets <= 0.5 and <= 0.25 at 5 m)."""
+    within-image cosine; the course's targets >= 32 and <= 0.5) and the near-duplicate rate on the route at 5
+    and 10 m, raw pixels and frozen backbone + GeM (targets <= 0.5 and <= 0.25 at 5 m)."""
     import copy
 
     from .aggregation import GeM

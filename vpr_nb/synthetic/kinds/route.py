@@ -3,7 +3,8 @@
 Trees, houses, catenary poles and fences along a smooth curvy track, in landscape zones (forest,
 field, village) that change slowly, and roadside objects close to the track (more content per metre:
 ``roadside_spacing``, one per metre per side by default; 0 leaves them out); a camera turned ``camera_yaw``
-degrees (45 by default; 0 looks forward) to the side takes one frame every ``frame_spacing`` metres; the database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
+degrees (45 by default; 0 looks forward) to the side takes one frame every ``frame_spacing`` metres; the
+database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
 (``pos_radius = 1.01 * frame_spacing``). Splits are bands of frames.
 """
 from __future__ import annotations
