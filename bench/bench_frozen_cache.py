@@ -97,7 +97,7 @@ def bench_fine_tune(ds, aggregator: str, epochs: int, order: str, label: str = "
 
 
 def bench_search(ds, epochs: int) -> None:
-    recipe = dataclasses.replace(RECIPE, max_epochs=epochs, patience=epochs, min_search_seeds=2)
+    recipe = dataclasses.replace(RECIPE, max_epochs=epochs, patience=epochs, search_seeds=2)
     method = Method("GeM", "gem")
     cpu = {}
     for cached in (False, True, True, False):

@@ -457,7 +457,7 @@ committed = results.load("04_netvlad", EXPERIMENT)
 st, res = committed["stamp"], committed["results"]
 SEEDS = EXPERIMENT["seeds"]
 PAPER = "VGG16 + NetVLAD-64, Pittsburgh30k val (as quoted in pytorch-NetVlad's README): R@1 / R@5 / R@10 = 0.841 / 0.946 / 0.955"
-print(f"reproduce profile, {len(SEEDS)} seeds (notebooks/results/04_netvlad.json, commit {st['git commit']}, "
+print(f"reproduce profile, {len(SEEDS)} seeds (notebooks/results/04_netvlad.json, "
       f"date {st['date']}): test Recall@N, {EXPERIMENT['epochs']} epochs, mean ± std over seeds {SEEDS}")
 print(f"{'':40s}{'dim':>6s}" + "".join(f"{'R@' + str(n):>16s}" for n in NS) + f"{'mean cosine':>13s}   best epoch per seed")
 for name, r in res["fixed"].items():

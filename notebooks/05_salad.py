@@ -487,7 +487,7 @@ SEEDS = EXPERIMENT["seeds"]
 rows = res["per seed"]
 PAPER = ("DINOv2-SALAD, the paper's README: R@1 / R@5 / R@10 = 0.922 / 0.964 / 0.970 on MSLS val, "
          "0.951 / 0.985 / 0.991 on Pitts250k test, 0.760 / 0.892 / 0.920 on Nordland")
-table(f"reproduce profile, {len(SEEDS)} seeds (notebooks/results/05_salad.json, commit {st['git commit']}, date "
+table(f"reproduce profile, {len(SEEDS)} seeds (notebooks/results/05_salad.json, date "
       f"{st['date']}): test Recall@N, mean ± std over seeds {SEEDS}", res["fixed"], rows)
 print(f"paper: {PAPER}")
 print(f"(the committed runs took {res['seconds'] / 60:.1f} min wall time in 2 processes, torch on one thread each)")

@@ -482,8 +482,8 @@ seeds = EXPERIMENT["seeds"]
 rep = {n: {k: f"{r[k]:.3f}" for k in METRICS} for n, r in res["fixed"].items()}
 for s, cols in res["per seed"].items():
     rep[s] = {k: "{:.3f} ± {:.3f}".format(*results.mean_std(cols[k])) for k in METRICS}
-show_table(rep, f"reproduce profile, {len(seeds)} seeds (notebooks/results/07_clique_mining.json, commit "
-                f"{st['git commit']}, date {st['date']}; {res['seconds'] / 60:.0f} min wall on 2 cores); trained: "
+show_table(rep, f"reproduce profile, {len(seeds)} seeds (notebooks/results/07_clique_mining.json, "
+                f"date {st['date']}; {res['seconds'] / 60:.0f} min wall on 2 cores); trained: "
                 f"mean ± std over seeds {seeds}")
 for s, cols in res["per seed"].items():
     print(f"{s}: start R@1 {np.mean(cols['start R@1']):.3f}; best epoch per seed {cols['best epoch']}; "

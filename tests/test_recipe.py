@@ -175,16 +175,24 @@ def test_lr_search_refuses_a_small_validation_split_on_one_seed(world):
 @pytest.mark.slow
 def test_lr_search_picks_the_best_grid_point_on_validation(world):
     tr, va = world
-    recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3, 1.0), min_search_seeds=2)
+    recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3, 1.0), search_seeds=2)
     cache = FrozenFeatureCache()
-    search = lr_search(Method("GeM", "gem", paper_lr=1e-4), tr, va, recipe, seeds=(0, 1), cache=cache)
+    search = lr_search(Method("GeM", "gem", paper_lr=1e-4), tr, va, recipe, seeds=(0, 1, 2), cache=cache)
     assert search.grid == (1e-4, 1e-3, 1.0)
+    assert search.search_seeds == (0, 1) and all(len(v) == 2 for v in search.val_recall.values())
     means = {lr: np.mean(v) for lr, v in search.val_recall.items()}
     assert search.lr == max(search.grid, key=lambda lr: (means[lr], -lr))
-    assert set(search.runs) == {0, 1} and all(r.lr == search.lr and r.search is search for r in search.runs.values())
-    assert all(r.history.best_recall == v for r, v in zip(search.runs.values(), search.val_recall[search.lr]))
-    assert cache.resets == 0 and cache.hits > cache.misses              # one cache for all six runs
-    assert "<- chosen" in search.table()
+    assert set(search.runs) == {0, 1, 2} and all(r.lr == search.lr and r.search is search
+                                                  for r in search.runs.values())
+    assert all(search.runs[s].history.best_recall == v for s, v in zip((0, 1), search.val_recall[search.lr]))
+    # seed 2 took no part in the choice: it ran at the chosen lr only, as the same fine-tune on its own would
+    assert set(search.histories[search.lr]) == {0, 1, 2}
+    assert all(set(search.histories[lr]) == {0, 1} for lr in search.grid if lr != search.lr)
+    alone = fine_tune(Method("GeM", "gem", paper_lr=1e-4), tr, va, recipe, seed=2, lr=search.lr)
+    for (k, x), (_, y) in zip(alone.model.state_dict().items(), search.runs[2].model.state_dict().items()):
+        assert torch.equal(x, y), k
+    assert cache.resets == 0 and cache.hits > cache.misses              # one cache for all seven runs
+    assert "<- chosen" in search.table() and "mean over seeds [0, 1])" in search.table()
     # a validation split of min_val_queries queries lets one seed choose
     one = fine_tune(Method("GeM", "gem"), tr, va, dataclasses.replace(recipe, min_val_queries=len(va.q_images)), 0)
     assert one.lr in recipe.lr_grid and one.search.seeds == (0,)
@@ -210,7 +218,7 @@ def test_place_batches_and_custom_sources(world):
 
 def test_search_methods_gives_the_same_runs_in_one_process_and_in_two(world):
     tr, va = world
-    recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3,), min_search_seeds=1)
+    recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3,), search_seeds=1)
     sgd = dataclasses.replace(recipe, optimizer="sgd")
     methods = [Method("GeM", "gem"), (Method("GeM, SGD", "gem"), sgd)]
     one = search_methods(methods, tr, va, recipe, seeds=(0,))

@@ -23,8 +23,9 @@ the *method* (a loss, an aggregator, a batch sampler), so everything else is fix
   training without saying so: ``History.initial_won``); training stops when validation Recall@1 has not
   improved for ``patience`` epochs (at most ``max_epochs``), and the best-on-validation weights are kept.
 - **Learning rate per method** from a small grid (``lr_grid`` plus the method's ``paper_lr``, the paper's
-  learning rate rescaled as the notebook explains), chosen on validation: a split with at least
-  ``min_val_queries`` queries, or the mean over at least ``min_search_seeds`` seeds (:func:`lr_search`).
+  learning rate rescaled as the notebook explains), chosen on validation: the mean over the first
+  ``search_seeds`` seeds of a multi-seed run, whose other seeds then train at the chosen rate only
+  (:func:`lr_search`); on a split under ``min_val_queries`` queries the choice needs that many seeds.
 - **Frozen blocks computed once** (:mod:`vpr_nb.feature_cache`): one cache per search, shared by every run.
 
 A notebook states only what deviates: ``dataclasses.replace(RECIPE, batch_size=4)``.
@@ -93,8 +94,9 @@ class Recipe:
     max_epochs: int = 24             # measured: SALAD stops at epochs 12-13 (best 8-9), GeM at 7-10
     patience: int = 4                # on 04's and 05's 35 committed 8-epoch curves it keeps the best in 34 (3: 31)
     initial_candidate: bool = True
-    min_val_queries: int = 500       # below it, choose the lr over seeds
-    min_search_seeds: int = 3
+    min_val_queries: int = 500       # below it, choose the lr over >= search_seeds seeds
+    search_seeds: int = 3            # the lr is chosen on a run's first 3 seeds (on notebook 03's 8 searched
+                                     # rows and 06's 2 arms the same rate as the mean over all 5 seeds)
     ns: tuple[int, ...] = (1, 5, 10)
     # frozen-block cache
     frozen_cache: bool = True
@@ -106,7 +108,7 @@ class Recipe:
         ints = ("batch_size", "num_negatives", "num_candidates", "places_per_batch", "place_batches_per_epoch",
                 "spots_per_place", "netvlad_clusters", "netvlad_per_image", "netvlad_niter", "salad_clusters",
                 "salad_cluster_dim", "salad_token_dim", "salad_hidden_dim", "step_size", "max_epochs", "patience",
-                "min_search_seeds")
+                "search_seeds")
         for name in ints:
             check_int(getattr(self, name), name)
         check_int(self.trainable_blocks, "trainable_blocks", minimum=0, maximum=4)
@@ -382,8 +384,9 @@ def _run(method, train_split, val_split, recipe, seed, lr, cache, progress) -> F
 @dataclass
 class LRSearch:
     """The learning-rate choice of :func:`lr_search`: ``lr`` (chosen), ``grid``, ``val_recall[lr]`` = the
-    selected validation Recall@``ns[0]`` per seed, ``runs[seed]`` = the :class:`FineTuneResult` at the chosen
-    lr, ``histories[lr][seed]`` every run's history, and the size of the choice (queries, seeds)."""
+    selected validation Recall@``ns[0]`` per search seed, ``runs[seed]`` = the :class:`FineTuneResult` at the
+    chosen lr for every seed, ``histories[lr][seed]`` every run's history, and the size of the choice
+    (queries, ``search_seeds``: the seeds it was made on; the other ``seeds`` ran at the chosen lr only)."""
 
     method: str
     lr: float
@@ -394,15 +397,21 @@ class LRSearch:
     runs: dict
     histories: dict
     cache: dict | None = None
+    search_seeds: tuple[int, ...] = ()
+
+    def __post_init__(self):
+        if not self.search_seeds:
+            self.search_seeds = tuple(self.seeds)
 
     def table(self) -> str:
-        """One line per lr: mean ± std of the selected val Recall over seeds, best epochs, the choice."""
+        """One line per lr: mean ± std of the selected val Recall over the search seeds, best epochs, the
+        choice."""
         lines = [f"{self.method}: lr chosen on validation ({self.val_queries} queries, "
-                 f"mean over seeds {list(self.seeds)})"]
+                 f"mean over seeds {list(self.search_seeds)})"]
         for lr in self.grid:
             vals = self.val_recall[lr]
             sd = float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0
-            epochs = [self.histories[lr][s].best_epoch + 1 for s in self.seeds]
+            epochs = [self.histories[lr][s].best_epoch + 1 for s in self.search_seeds]
             lines.append(f"  lr {lr:.2g}: val R@1 {np.mean(vals):.3f} ± {sd:.3f}, best epoch {epochs}"
                          + ("   <- chosen" if lr == self.lr else ""))
         return "\n".join(lines)
@@ -410,11 +419,14 @@ class LRSearch:
 
 def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,), *,
               cache: FrozenFeatureCache | None = None, progress: bool = False) -> LRSearch:
-    """Fine-tune ``method`` at every lr of :meth:`Method.lr_grid` for every seed; choose the lr with the highest
-    mean selected validation Recall@``ns[0]`` (ties: the smaller lr).
+    """Fine-tune ``method`` at every lr of :meth:`Method.lr_grid` for the first ``recipe.search_seeds`` of
+    ``seeds``; choose the lr with the highest mean selected validation Recall@``ns[0]`` over them (ties: the
+    smaller lr); then fine-tune the remaining seeds at the chosen lr only. Every run is seeded on its own, so
+    a seed's run at the chosen lr is the same whether or not it took part in the choice. A one-point grid has
+    nothing to choose: every seed runs at it and counts in ``val_recall``.
 
     The choice is refused (``ValueError``) on a validation split with fewer than ``recipe.min_val_queries``
-    queries unless it is made over at least ``recipe.min_search_seeds`` seeds: on 133 queries one query is
+    queries unless it is made over at least ``recipe.search_seeds`` seeds: on 133 queries one query is
     0.0075 of Recall@1, the size of the differences between grid points. The frozen blocks are computed once
     for the whole search (``recipe.frozen_cache``; pass ``cache`` to share one between searches).
     """
@@ -423,24 +435,28 @@ def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"seeds must list distinct training seeds, got {seeds}")
     queries = len(val_split.q_images)
-    if queries < recipe.min_val_queries and len(seeds) < recipe.min_search_seeds:
+    grid = method.lr_grid(recipe)
+    chooses = seeds if len(grid) == 1 else seeds[:recipe.search_seeds]
+    if len(grid) > 1 and queries < recipe.min_val_queries and len(chooses) < recipe.search_seeds:
         raise ValueError(f"the validation split has {queries} queries, fewer than recipe.min_val_queries = "
                          f"{recipe.min_val_queries}, too few to choose a learning rate on one seed; choose over "
-                         f">= {recipe.min_search_seeds} seeds (seeds=(0, 1, 2, ...)), use a larger validation "
+                         f">= {recipe.search_seeds} seeds (seeds=(0, 1, 2, ...)), use a larger validation "
                          f"split, or fine-tune at a given lr (fine_tune(..., lr=recipe.lr))")
     if cache is None and recipe.frozen_cache:
         cache = FrozenFeatureCache(recipe.cache_dtype)
-    grid = method.lr_grid(recipe)
     val_recall, histories, best, best_runs = {}, {}, -math.inf, {}
     for lr in grid:
-        runs = {s: _run(method, train_split, val_split, recipe, s, lr, cache, progress) for s in seeds}
+        runs = {s: _run(method, train_split, val_split, recipe, s, lr, cache, progress) for s in chooses}
         val_recall[lr] = [r.history.best_recall for r in runs.values()]
         histories[lr] = {s: r.history for s, r in runs.items()}
         if float(np.mean(val_recall[lr])) > best:          # ascending grid: a tie keeps the smaller lr
             best, best_runs = float(np.mean(val_recall[lr])), runs
     chosen = next(iter(best_runs.values())).lr
-    search = LRSearch(method.name, chosen, grid, seeds, queries, val_recall, best_runs, histories,
-                      None if cache is None else cache.stats())
+    for s in seeds[len(chooses):]:                         # the other seeds: at the chosen lr only
+        best_runs[s] = _run(method, train_split, val_split, recipe, s, chosen, cache, progress)
+        histories[chosen][s] = best_runs[s].history
+    search = LRSearch(method.name, chosen, grid, seeds, queries, val_recall, {s: best_runs[s] for s in seeds},
+                      histories, None if cache is None else cache.stats(), chooses)
     for r in best_runs.values():
         r.search = search
     return search
@@ -470,7 +486,7 @@ def _search_one(args):
     method, train_split, val_split, recipe, seeds, lr = args
     if lr is not None:          # a given rate: the search over a one-point grid (nothing to choose)
         method = dataclasses.replace(method, paper_lr=None)
-        recipe = dataclasses.replace(recipe, lr_grid=(lr,), min_val_queries=0)
+        recipe = dataclasses.replace(recipe, lr_grid=(lr,))
     return lr_search(method, train_split, val_split, recipe, seeds)
 
 
