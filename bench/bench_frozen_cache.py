@@ -14,6 +14,12 @@
    backbone the world/backbone issue plans).
 4. **Memory**: the cache's bytes per image and in all after a run, and the descriptor error of ``float16``
    storage (why the default is ``float32``).
+5. **Where a step's time goes** (also ``--parts`` alone): one training batch of 112 images (16 triplets of a
+   query, a positive and 5 negatives) through the course backbone: the frozen blocks' forward (what the cache
+   saves) against the trainable block's forward + backward, median of 20 repeats, and the Amdahl cap on the
+   cache's ratio for that batch, 1 + frozen / trainable (the aggregator, loss and optimiser only lower it).
+   Which convolution path runs depends on the kernels: run it as ``python -m vpr_nb.kernels --run python
+   bench/bench_frozen_cache.py --parts`` (pinned, as the notebooks) and without the pins to compare.
 
 Timings are process CPU time on one torch thread; the script prints the load average, since the ratio is
 what it measures (both paths in one run), not absolute time. Nothing fails on time; a disagreement of the two
@@ -21,6 +27,7 @@ paths beyond 1e-5 makes the script exit 1.
 
     python bench/bench_frozen_cache.py            # gem, netvlad, salad, 4 epochs each, + the lr search
     python bench/bench_frozen_cache.py --quick    # gem, 1 epoch
+    python bench/bench_frozen_cache.py --parts    # part 5 only
 """
 from __future__ import annotations
 
@@ -132,12 +139,47 @@ def bench_memory(ds) -> None:
           f"{out['float32'][1]:.1e}); tolerance {TOLERANCE:g} -> default float32")
 
 
+def bench_step_parts(ds, repeats: int = 20) -> None:
+    """Part 5: the frozen blocks' forward vs the trainable block's forward + backward on one training batch."""
+    from vpr_nb.evaluation import images_to_tensor
+    from vpr_nb.kernels import describe
+
+    backbone = vpr_nb.pretrain.course_backbone(trainable_blocks=RECIPE.trainable_blocks)
+    k = backbone.num_frozen
+    frozen, trainable = backbone.features[:k], backbone.features[k:]
+    images = ds.train.db_images[np.random.default_rng(0).choice(len(ds.train.db_images), 112, replace=False)]
+    x = images_to_tensor(images)
+
+    def median_cpu(fn) -> float:
+        fn()                                                     # warm-up
+        return float(np.median([_timed(fn)[1] for _ in range(repeats)]))
+
+    @torch.no_grad()
+    def frozen_forward():
+        return frozen(x)
+
+    maps = frozen_forward()
+    t_frozen = median_cpu(frozen_forward)
+
+    def step():
+        trainable.zero_grad(set_to_none=True)
+        trainable(maps).sum().backward()
+
+    t_train = median_cpu(step)
+    info = describe()
+    print(f"one batch of 112 images (kernels pinned: {info['pinned']}, oneDNN convolutions: "
+          f"{info['onednn_convolutions']}): frozen blocks forward {t_frozen * 1e3:.1f} ms, trainable block "
+          f"forward + backward {t_train * 1e3:.1f} ms -> the cache saves at most {1 + t_frozen / t_train:.2f}x "
+          f"on the backbone's part of a step")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="GeM only, 1 epoch")
     parser.add_argument("--epochs", type=int, default=None)
     parser.add_argument("--wide", type=int, default=96, help="width of the stand-in backbone of part 3 (0: skip)")
     parser.add_argument("--only-wide", action="store_true", help="run part 3 only")
+    parser.add_argument("--parts", action="store_true", help="run part 5 only")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     epochs = args.epochs or (1 if args.quick else 4)
@@ -146,6 +188,9 @@ def main(argv=None) -> int:
     print(ds.train, ds.val, sep="\n")
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])     # the first Adam imports torch._dynamo (~3 s): not timed
     ok = True
+    if args.parts:
+        bench_step_parts(ds)
+        return 0
     if not args.only_wide:
         for aggregator in ("gem",) if args.quick else ("gem", "netvlad", "salad"):
             ok &= bench_fine_tune(ds, aggregator, epochs, "UCCU")
@@ -160,6 +205,7 @@ def main(argv=None) -> int:
             vpr_nb.pretrain.course_backbone = course
     if not args.only_wide:
         bench_memory(ds)
+        bench_step_parts(ds)
     print(_load(), "(after)")
     if not ok:
         print(f"error: the cached and uncached paths differ by more than {TOLERANCE:g}")
