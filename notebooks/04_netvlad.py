@@ -232,12 +232,12 @@ for vladv2 in (False, True):
 #
 # That last block ends in a **ReLU**, which can switch a position off: exactly zero in every channel (the
 # printout below counts such positions). A zero vector has no direction: NetVLAD L2-normalises each local
-# feature (it stays 0), gives it the uniform assignment $\mathrm{softmax}(0) = 1/K$ (vladv1 has no bias), so every zero position adds
-# $-c_k/K$ to every cluster's residual sum, the same vector in every image. The public NetVLAD code
-# (`pytorch-NetVlad`) reads VGG16 at conv5_3 **before** its ReLU, and DINOv2's tokens (SALAD, notebook 05)
-# come out of a LayerNorm: both are signed, dense features. Which side serves NetVLAD better depends on the
-# backbone, so we look at both and measure below; the course recipe reads the backbone's output, after the
-# ReLU (`course_backbone()`), and `before_relu` swaps the ReLU for an identity:
+# feature (it stays 0), gives it the uniform assignment $\mathrm{softmax}(0) = 1/K$ (vladv1 has no bias), so
+# every zero position adds $-c_k/K$ to every cluster's residual sum, the same vector in every image. The
+# public NetVLAD code (`pytorch-NetVlad`) reads VGG16 at conv5_3 **before** its ReLU, and DINOv2's tokens
+# (SALAD, notebook 05) come out of a LayerNorm: both are signed, dense features. Which side serves NetVLAD
+# better depends on the backbone, so we look at both and measure below; the course recipe reads the backbone's
+# output, after the ReLU (`course_backbone()`), and `before_relu` swaps the ReLU for an identity:
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -622,7 +622,8 @@ check("weak_assignment_share", [
 # ## Graded exercise: predict, then compute the descriptor of a switched-off image
 #
 # A ReLU can switch a local feature off entirely: exactly zero in every channel (none are on the course
-# backbone, the printout above, but a backbone trained otherwise can have many). Take an image whose $N$ local features are **all** exactly zero and the layer of this notebook
+# backbone, the printout above, but a backbone trained otherwise can have many). Take an image whose $N$
+# local features are **all** exactly zero and the layer of this notebook
 # (`vladv2=False`: the soft assignment is a softmax of $\alpha \cos(x_i, c_k)$ of the L2-normalised feature, an
 # all-zero feature stays zero after L2 normalisation; then intra-normalisation of each cluster's residual sum
 # and a final L2 normalisation).
@@ -652,7 +653,8 @@ check("ZERO_IMAGE", [Case("the NetVLAD descriptor of an image whose local featur
 # **Then compute it.** Write `zero_image_descriptor(cents)` for the centroids `cents` $[K, D]$ (numpy, not
 # normalised): the final NetVLAD descriptor of such an image as a numpy array $[K \cdot D]$, cluster by
 # cluster (entries $kD, \dots, kD + D - 1$ belong to cluster $k$), in numpy (no `vpr_nb`). What does your
-# result say about the mean pairwise cosine of untrained descriptors of images with many switched-off features?
+# result say about the mean pairwise cosine of untrained descriptors of images with many switched-off
+# features?
 
 # %% nbgrader={"grade": false, "grade_id": "ex-04-zero-descriptor", "locked": false, "schema_version": 3, "solution": true}
 def zero_image_descriptor(cents):

@@ -392,16 +392,12 @@ class LRSearch:
     lr: float
     grid: tuple[float, ...]
     seeds: tuple[int, ...]
+    search_seeds: tuple[int, ...]
     val_queries: int
     val_recall: dict
     runs: dict
     histories: dict
     cache: dict | None = None
-    search_seeds: tuple[int, ...] = ()
-
-    def __post_init__(self):
-        if not self.search_seeds:
-            self.search_seeds = tuple(self.seeds)
 
     def table(self) -> str:
         """One line per lr: mean ± std of the selected val Recall over the search seeds, best epochs, the
@@ -455,8 +451,8 @@ def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
     for s in seeds[len(chooses):]:                         # the other seeds: at the chosen lr only
         best_runs[s] = _run(method, train_split, val_split, recipe, s, chosen, cache, progress)
         histories[chosen][s] = best_runs[s].history
-    search = LRSearch(method.name, chosen, grid, seeds, queries, val_recall, {s: best_runs[s] for s in seeds},
-                      histories, None if cache is None else cache.stats(), chooses)
+    search = LRSearch(method.name, chosen, grid, seeds, chooses, queries, val_recall,
+                      {s: best_runs[s] for s in seeds}, histories, None if cache is None else cache.stats())
     for r in best_runs.values():
         r.search = search
     return search
