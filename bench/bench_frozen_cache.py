@@ -131,10 +131,11 @@ def bench_memory(ds) -> None:
     fmap = model.backbone.features[:model.backbone.num_frozen](
         torch.zeros(1, 3, *ds.train.db_images.shape[1:3]))
     per_image = fmap.numel() * 4
-    print(f"memory: a frozen map is {tuple(fmap.shape[1:])} = {per_image / 1024:.1f} KiB in float32; the train + "
-          f"val splits of the tiny city ({images} images) take {images * per_image / 2 ** 20:.1f} MiB "
-          f"(float32; the cache holds {out['float32'][0].nbytes / 2 ** 20:.1f} MiB), float16 "
-          f"{out['float16'][0].nbytes / 2 ** 20:.1f} MiB")
+    key = 3 * int(np.prod(ds.train.db_images.shape[1:3])) * 4      # the key: the image's input floats
+    print(f"memory: a frozen map is {tuple(fmap.shape[1:])} = {per_image / 1024:.1f} KiB in float32, its key "
+          f"{key / 1024:.1f} KiB; the train + val splits of the tiny city ({images} images) take "
+          f"{images * (per_image + key) / 2 ** 20:.1f} MiB (float32; the cache holds "
+          f"{out['float32'][0].nbytes / 2 ** 20:.1f} MiB), float16 {out['float16'][0].nbytes / 2 ** 20:.1f} MiB")
     print(f"float16 storage: max |val descriptor difference| {out['float16'][1]:.1e} (float32: "
           f"{out['float32'][1]:.1e}); tolerance {TOLERANCE:g} -> default float32")
 

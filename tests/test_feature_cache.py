@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from vpr_nb.evaluation import compute_descriptors, images_to_tensor
-from vpr_nb.feature_cache import FrozenFeatureCache, attach, check_cacheable, detach, image_keys
+from vpr_nb.feature_cache import FrozenFeatureCache, attach, check_cacheable, detach, image_keys, input_signature
 from vpr_nb.losses import MultiSimilarityLoss, TripletLoss
 from vpr_nb.models import SmallCNN, build_model
 from vpr_nb.pretrain import course_backbone
@@ -69,7 +69,7 @@ def test_cached_forward_equals_uncached_and_counts_hits():
     assert torch.equal(part, want[[3, 1, 7]])
     assert torch.allclose(mixed[:4], want[:4], atol=1e-6)
     assert cache.stats()["images"] == 15 and cache.hits == 12 + 3 + 4 and cache.misses == 12 + 3
-    assert cache.nbytes == 15 * 16 * 8 * 12 * 4
+    assert cache.nbytes == 15 * (16 * 8 * 12 * 4 + 3 * 32 * 48 * 4)     # the maps and their keys (the inputs)
 
 
 def test_a_batch_with_one_image_twice_stores_it_once():
@@ -80,6 +80,23 @@ def test_a_batch_with_one_image_twice_stores_it_once():
         out = net(torch.cat([x, x[:2]]))
     assert len(cache) == 4 and torch.allclose(out[4:], out[:2])
     assert len(set(image_keys(torch.cat([x, x[:2]])))) == 4
+
+
+def test_keys_are_the_exact_bytes_and_a_reshaped_input_is_another_input():
+    x = images_to_tensor(_images(3))
+    keys = image_keys(x)
+    assert keys[0] == x[0].contiguous().numpy().tobytes() and len(set(keys)) == 3
+    nudged = x.clone()
+    nudged[1, 2, 31, 47] = torch.nextafter(nudged[1, 2, 31, 47], torch.tensor(10.0))   # one float, one ulp
+    assert image_keys(nudged)[1] != keys[1] and image_keys(nudged)[0] == keys[0]
+    other = x.reshape(3, 3, 48, 32)                   # the same bytes as another image size
+    assert image_keys(other) == keys and input_signature(other) != input_signature(x)
+    net = SmallCNN(width=8).set_trainable_blocks(1)
+    cache = FrozenFeatureCache()
+    with cache.attached(net):
+        net(x)
+        with pytest.raises(ValueError, match="one cache per image size"):
+            net(other)                                # not a hit: looked up among 3x48x32 inputs
 
 
 def test_changed_frozen_weights_drop_the_stored_maps():
@@ -118,7 +135,7 @@ def test_float16_storage_is_close_but_not_exact():
         net(x)
         half = net(x)
     assert torch.allclose(half, net(x), atol=5e-2)
-    assert cache.nbytes == 12 * 16 * 8 * 12 * 2      # 12 images, 2 bytes per value
+    assert cache.nbytes == 12 * (16 * 8 * 12 * 2 + 3 * 32 * 48 * 4)     # 2 bytes per map value; float32 keys
 
 
 def _train_pair(make_model, make_source, val, epochs=1):

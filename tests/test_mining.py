@@ -125,8 +125,6 @@ def test_mine_triplets_bad_inputs(triplet_world):
             mine_triplets(**{**base, **kw})
 
 
-
-
 def test_mine_triplets_takes_positives_and_near_images_from_the_split(triplet_world):
     # the database twice, as two cities with the same coordinates: the split's per-city positives decide
     qd, dbd, qu, du, _, _ = triplet_world
@@ -145,3 +143,7 @@ def test_mine_triplets_takes_positives_and_near_images_from_the_split(triplet_wo
     assert (flat.positive >= len(du)).any() and (np.linalg.norm(db_utm[flat.negatives] - qu[:, None], axis=-1) > 25.0).all()
     with pytest.raises(ValueError, match="one index array per query"):
         mine_triplets(qd, db_desc, qu, db_utm, ids, positives=split.positives(10.0)[:3], **kw)
+    near = split.positives(25.0)
+    near[4] = np.append(near[4], len(db_utm))                          # one index past the database
+    with pytest.raises(ValueError, match=r"near must hold database indices in \[0, "):
+        mine_triplets(qd, db_desc, qu, db_utm, ids, positives=split.positives(10.0), near=near, **kw)

@@ -7,9 +7,10 @@ Finiteness is checked once per public call and cheaply: one sum over the values 
 propagate into it), and the element-wise scan only when that sum is not finite -- to name the
 culprit, or to find that the values were finite after all and only their sum overflowed. A public
 function that hands already validated tensors (or values computed from them) to other public
-functions runs them inside :func:`validated_inputs`, where :func:`check_tensor` keeps its shape and
-dtype checks but skips the finiteness scan (a model checks its images once, not again in its backbone
-and its aggregator; SALAD checks its inputs once, not again in ``salad_aggregate`` and ``sinkhorn``).
+functions runs them inside :func:`validated_inputs`, where :func:`check_tensor` and :func:`as_float_matrix`
+keep their shape and dtype checks but skip the finiteness scan (a model checks its images once, not again in
+its backbone and its aggregator; SALAD checks its inputs once, not again in ``salad_aggregate`` and
+``sinkhorn``; a triplet source checks its mining descriptors once per refresh, not at every batch).
 """
 from __future__ import annotations
 
@@ -60,7 +61,8 @@ def array_is_finite(arr: np.ndarray) -> bool:
 
 
 def as_float_matrix(x, name: str, *, dim: int | None = None, allow_empty: bool = False) -> np.ndarray:
-    """Return ``x`` as a C-contiguous float32 ``(N, D)`` numpy array, validating it.
+    """Return ``x`` as a C-contiguous float32 ``(N, D)`` numpy array, validating it (its values' finiteness
+    only outside :func:`validated_inputs`).
 
     Accepts numpy arrays, torch tensors (detached, moved to CPU) and nested lists.
     """
@@ -83,7 +85,7 @@ def as_float_matrix(x, name: str, *, dim: int | None = None, allow_empty: bool =
     if dim is not None and arr.shape[1] != dim:
         raise ValueError(f"{name} must have {dim} columns, got shape {tuple(arr.shape)}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
-    if not array_is_finite(arr):
+    if not _inputs_validated() and not array_is_finite(arr):
         bad = int((~np.isfinite(arr)).any(axis=1).sum())
         raise ValueError(f"{name} contains NaN or inf in {bad} row(s); clean or drop them first")
     return arr

@@ -9,8 +9,9 @@ The cache sits where :class:`vpr_nb.models.SmallCNN` runs its frozen layers (``b
 every caller benefits without change: the batch sources' training steps, the descriptor passes of triplet
 mining, :func:`vpr_nb.evaluation.compute_descriptors` and the validation of :func:`vpr_nb.training.train`.
 
-**Keys.** An image is recognised by its content: a 160-bit digest (SHA-1, not used for security) of the exact
-float bytes the backbone receives, with their shape. The same image gives the same tensor
+**Keys.** An image is recognised by its content: the exact float bytes the backbone receives, with their shape
+and dtype. Keys are compared in full (a dict lookup hashes them and compares the bytes on a hash match), so
+two different images can never share a stored map. The same image gives the same tensor
 (``images_to_tensor`` is deterministic), so it hits; any other input (an augmented crop, another world)
 misses and is computed as without the cache. Nothing about the data sources has to be declared.
 
@@ -22,10 +23,12 @@ in ``train()``), Dropout and any unknown module. The frozen weights are fingerpr
 (``load_state_dict`` with other values, a different number of frozen blocks) the stored maps are dropped.
 
 **Memory.** ``float32`` storage by default: a course-backbone map (width 48: 96 channels × 8 × 12 for a
-32×48 image) takes 36 KiB, so the tiny city's train + val splits (1,599 images) take 56.2 MiB and the
-tiny route's (1,434 images) 50.4 MiB. ``float16`` halves that but changes descriptors by about 3e-4
-(measured in ``bench/bench_frozen_cache.py``), more than the 1e-5 the cached path must stay within, so it is
-only an option. Beyond ``max_bytes`` new maps are computed and not stored (counted in ``bypassed``).
+32×48 image) takes 36 KiB and its key (the 3 × 32 × 48 input floats) 18 KiB, so the tiny city's train + val
+splits (1,599 images) take 84.3 MiB and the tiny route's (1,434 images) 75.6 MiB. ``float16`` storage halves
+the maps but changes descriptors by about 3e-4 (measured in ``bench/bench_frozen_cache.py``), more than the
+1e-5 the cached path must stay within, so it is only an option. Beyond ``max_bytes`` (maps and keys) new maps
+are computed and not stored (counted in ``bypassed``). Maps are stored channels-last (``[h, w, C]``), the
+layout the course's images give them, so a batch of hits is handed back without a copy.
 
     cache = FrozenFeatureCache()
     with cache.attached(model.backbone):
@@ -78,11 +81,15 @@ def check_cacheable(frozen: nn.Module) -> None:
 
 
 def image_keys(x: torch.Tensor) -> list[bytes]:
-    """One key per image of ``x`` ``[B, ...]``: its shape and the SHA-1 digest of its exact float bytes."""
+    """One key per image of ``x`` ``[B, ...]``: its exact float bytes (compare them with the input's
+    :func:`input_signature`: the same bytes in another shape or dtype are another input)."""
     arr = np.ascontiguousarray(x.detach().cpu().numpy())
-    shape = repr(tuple(arr.shape[1:])).encode() + arr.dtype.str.encode()
-    flat = arr.reshape(len(arr), -1)
-    return [shape + hashlib.sha1(row, usedforsecurity=False).digest() for row in flat]
+    return [row.tobytes() for row in arr.reshape(len(arr), -1)]
+
+
+def input_signature(x: torch.Tensor) -> tuple:
+    """The shape of one image of ``x`` and its dtype: keys are looked up among those of this signature."""
+    return tuple(x.shape[1:]), str(x.dtype)
 
 
 def _memory_format(x: torch.Tensor) -> torch.memory_format:
@@ -120,8 +127,9 @@ class FrozenFeatureCache:
             raise ValueError(f"dtype must be one of {sorted(CACHE_DTYPES)}, got {dtype!r}")
         self.dtype = CACHE_DTYPES[dtype]
         self.max_bytes = check_int(max_bytes, "max_bytes", minimum=0)
-        self._rows: dict[bytes, int] = {}
-        self._maps: list[torch.Tensor] = []         # one [C, h, w] map per stored image, on the CPU
+        self._rows: dict[tuple, dict[bytes, int]] = {}   # input signature -> {image key: row of _maps}
+        self._maps: list[torch.Tensor] = []         # one [h, w, C] map per stored image, on the CPU
+        self._key_bytes = 0
         self._fingerprint: bytes | None = None
         self._versions: tuple | None = None
         self.hits = self.misses = self.bypassed = self.resets = 0
@@ -131,20 +139,21 @@ class FrozenFeatureCache:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the stored maps."""
-        return sum(m.numel() * m.element_size() for m in self._maps[:1]) * len(self._maps)
+        """Bytes held by the stored maps and their keys."""
+        return sum(m.numel() * m.element_size() for m in self._maps[:1]) * len(self._maps) + self._key_bytes
 
     def stats(self) -> dict:
         return {"images": len(self._maps), "MiB": round(self.nbytes / 2 ** 20, 2), "hits": self.hits,
                 "misses": self.misses, "bypassed": self.bypassed, "resets": self.resets}
 
     def clear(self) -> None:
-        self._rows, self._maps = {}, []
+        self._rows, self._maps, self._key_bytes = {}, [], 0
 
     def _sync(self, frozen: nn.Module) -> None:
         """Drop the stored maps if the frozen layers or their weights changed since they were computed."""
         tensors = list(frozen.parameters()) + list(frozen.buffers())
-        versions = tuple((t._version, t.data_ptr()) for t in tensors) + tuple(id(m) for m in frozen.modules())
+        layers = list(frozen.modules())[1:]      # not the container: SmallCNN slices a new one on every call
+        versions = tuple((t._version, t.data_ptr()) for t in tensors) + tuple(id(m) for m in layers)
         if versions == self._versions:
             return
         check_cacheable(frozen)
@@ -154,38 +163,44 @@ class FrozenFeatureCache:
             self.resets += 1
         self._fingerprint, self._versions = fingerprint, versions
 
-    def _append(self, maps: torch.Tensor) -> list[int] | None:
-        """Store ``maps`` ``[k, ...]`` (one tensor per image, no spare rows); returns their row indices, or
-        None when they do not fit in ``max_bytes``."""
-        maps = maps.detach().to("cpu", self.dtype, copy=True)
-        each = maps[0].numel() * maps.element_size()
-        if self._maps and self._maps[0].shape != maps.shape[1:]:
+    def _append(self, maps: torch.Tensor, key_bytes: int) -> list[int] | None:
+        """Store ``maps`` ``[k, C, h, w]`` (one per image, no spare rows) as ``[h, w, C]`` copies; returns their
+        row indices, or None when they and their keys (``key_bytes`` each) do not fit in ``max_bytes``."""
+        nhwc = maps.detach().permute(0, 2, 3, 1)
+        each = nhwc[0].numel() * torch.empty((), dtype=self.dtype).element_size()
+        if self._maps and self._maps[0].shape != nhwc.shape[1:]:
+            h, w, c = self._maps[0].shape
             raise ValueError(f"the frozen blocks gave maps of shape {tuple(maps.shape[1:])}, the cache holds "
-                             f"{tuple(self._maps[0].shape)}: use one cache per image size")
-        if (len(self._maps) + len(maps)) * each > self.max_bytes:
+                             f"{(c, h, w)}: use one cache per image size")
+        if self.nbytes + len(maps) * (each + key_bytes) > self.max_bytes:
             return None
+        stored = torch.empty(nhwc.shape, dtype=self.dtype)
+        stored.copy_(nhwc)                       # a copy: the caller's maps go on into the trainable layers
         first = len(self._maps)
-        self._maps.extend(maps.unbind(0))
+        self._maps.extend(stored.unbind(0))
+        self._key_bytes += len(maps) * key_bytes
         return list(range(first, len(self._maps)))
 
     def _gather(self, rows: list[int]) -> torch.Tensor:
-        return torch.stack([self._maps[r] for r in rows])
+        """The stored maps of ``rows`` as one ``[B, C, h, w]`` tensor in channels-last memory (a view)."""
+        return torch.stack([self._maps[r] for r in rows]).permute(0, 3, 1, 2)
 
-    def _remember(self, keys: list[bytes], maps: torch.Tensor) -> None:
+    def _remember(self, table: dict[bytes, int], keys: list[bytes], maps: torch.Tensor) -> None:
         first: dict[bytes, int] = {}
         for j, k in enumerate(keys):             # a batch may hold one image twice: store it once
             first.setdefault(k, j)
-        rows = self._append(maps[list(first.values())])
+        rows = self._append(maps[list(first.values())], len(keys[0]))
         if rows is None:
             self.bypassed += len(keys)
             return
-        self._rows.update(zip(first, rows))
+        table.update(zip(first, rows))
 
     def __call__(self, frozen: nn.Module, x: torch.Tensor) -> torch.Tensor:
         """``frozen(x)``, each image's map taken from the cache when it was computed before."""
         self._sync(frozen)
         keys = image_keys(x)
-        rows = [self._rows.get(k, -1) for k in keys]
+        table = self._rows.setdefault(input_signature(x), {})
+        rows = [table.get(k, -1) for k in keys]
         miss = [i for i, r in enumerate(rows) if r < 0]
         self.hits += len(keys) - len(miss)
         self.misses += len(miss)
@@ -193,7 +208,7 @@ class FrozenFeatureCache:
         if not miss:
             return self._gather(rows).to(x.device, x.dtype).contiguous(memory_format=layout)
         computed = frozen(x if len(miss) == len(keys) else x[miss])
-        self._remember([keys[i] for i in miss], computed)
+        self._remember(table, [keys[i] for i in miss], computed)
         if len(miss) == len(keys):
             return computed
         out = torch.empty((len(keys), *computed.shape[1:]), dtype=computed.dtype, device=computed.device)

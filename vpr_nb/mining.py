@@ -47,10 +47,13 @@ class TripletBatch:
     neg_cache: dict[int, np.ndarray]
 
 
-def _rows(lists, n: int, what: str) -> list[np.ndarray]:
+def _rows(lists, n: int, what: str, n_db: int) -> list[np.ndarray]:
     if len(lists) != n:
         raise ValueError(f"{what} must hold one index array per query of query_ids ({n}), got {len(lists)}")
-    return [np.asarray(r, dtype=np.int64) for r in lists]
+    rows = [np.asarray(r, dtype=np.int64).reshape(-1) for r in lists]
+    if any(len(r) and (r.min() < 0 or r.max() >= n_db) for r in rows):
+        raise ValueError(f"{what} must hold database indices in [0, {n_db - 1}]")
+    return rows
 
 
 def _sq_dist(q: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -151,13 +154,20 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
     mask = np.zeros((b, m), dtype=bool)
     geo_qp = np.full(b, np.nan)
     valid = np.zeros(b, dtype=bool)
-    pos_lists = positives_within(du, qu[ids], pos_r) if positives is None else _rows(positives, b, "positives")
-    near_lists = positives_within(du, qu[ids], neg_r) if near is None else _rows(near, b, "near")
     n_db = len(dbd)
+    pos_lists = positives_within(du, qu[ids], pos_r) if positives is None else _rows(positives, b, "positives", n_db)
+    near_lists = positives_within(du, qu[ids], neg_r) if near is None else _rows(near, b, "near", n_db)
+    is_near = np.zeros(n_db, dtype=bool)    # this query's images within neg_radius (never negatives)
+    is_cand = np.zeros(n_db, dtype=bool)    # this query's candidate negatives
     for r, (qi, pos, close) in enumerate(zip(ids.tolist(), pos_lists, near_lists)):
+        is_near[close] = True
         take = min(c, n_db - len(close))
         draw = rng.choice(n_db, size=min(n_db, take + len(close)), replace=False)
-        sample = draw[~np.isin(draw, close)][:take]  # uniform without replacement beyond neg_radius
+        sample = draw[~is_near[draw]][:take]  # uniform without replacement beyond neg_radius
+        cached = np.asarray(neg_cache.get(qi, ()), dtype=np.int64)
+        cached = cached[(cached >= 0) & (cached < n_db)]
+        cached = cached[~is_near[cached]]      # still beyond neg_radius (as the sample)
+        is_near[close] = False
         if max_heading_diff is not None:
             pos = pos[np.abs((dh[pos] - qh[qi] + 180.0) % 360.0 - 180.0) <= max_heading_diff]
         if len(pos) == 0:
@@ -166,10 +176,9 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
         d_pos = np.sqrt(_sq_dist(q, dbd[pos]))
         best = int(np.argmin(d_pos))
         positive[r], geo_qp[r] = pos[best], _dist(qu[qi], du[pos[best]])
-        cached = np.asarray(neg_cache.get(qi, ()), dtype=np.int64)
-        cached = cached[(cached >= 0) & (cached < n_db)]
-        cached = cached[~np.isin(cached, close)]   # still beyond neg_radius (as the sample)
-        cand = np.union1d(sample, cached)
+        is_cand[sample] = is_cand[cached] = True
+        cand = np.flatnonzero(is_cand)         # the union of both, ascending
+        is_cand[cand] = False
         if len(cand) < m:
             continue
         d_neg = np.sqrt(_sq_dist(q, dbd[cand]))

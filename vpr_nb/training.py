@@ -36,7 +36,7 @@ import torch
 from tqdm.auto import tqdm
 
 from . import losses as L
-from ._checks import check_int, check_positive
+from ._checks import check_int, check_positive, validated_inputs
 from .atomic import atomic_write
 from .evaluation import as_image_array, compute_descriptors, evaluate_on_split, images_to_tensor, mean_pairwise_cosine
 from .mining import mine_triplets
@@ -324,11 +324,12 @@ class TripletSource:
             if start == 0 or start // refresh != (start - self.batch_size) // refresh:  # refresh point crossed
                 q_desc, db_desc = self._descriptors(model)
             ids = order[start:start + self.batch_size]
-            tb = mine_triplets(q_desc, db_desc, s.q_utm, s.db_utm, ids, train_pos_radius=s.train_pos_radius,
-                               neg_radius=self.neg_radius, num_negatives=self.num_negatives,
-                               num_candidates=min(self.num_candidates, len(self.db)),
-                               neg_cache=self.neg_cache, rng=rng, positives=[self.positives[i] for i in ids],
-                               near=[self.near[i] for i in ids], **heading)
+            with validated_inputs():        # the descriptors were checked finite when computed (_descriptors)
+                tb = mine_triplets(q_desc, db_desc, s.q_utm, s.db_utm, ids, train_pos_radius=s.train_pos_radius,
+                                   neg_radius=self.neg_radius, num_negatives=self.num_negatives,
+                                   num_candidates=min(self.num_candidates, len(self.db)),
+                                   neg_cache=self.neg_cache, rng=rng, positives=[self.positives[i] for i in ids],
+                                   near=[self.near[i] for i in ids], **heading)
             v = np.flatnonzero(tb.valid)
             total = len(v)
             if total < world:
