@@ -90,6 +90,7 @@ def test_results_are_read_and_written_where_package_data_says(tmp_path, monkeypa
     assert package_data.committed_results_dir() == package_data.results_dir_for_writing() == ROOT / "notebooks" / "results"
     assert package_data.course_backbone_path() == ROOT / "vpr_nb" / "weights" / "course_backbone.pt"
     monkeypatch.setenv(package_data.RESULTS_DIR_ENV, str(tmp_path))
+    monkeypatch.setenv(results.ALLOW_DIRTY_ENV, "1")     # where the file goes, in a clean or an edited clone
     assert results.save("99_demo", {"epochs": 1}, {"R@1": 0.5}) == tmp_path / "99_demo.json"
     assert results.load("99_demo", {"epochs": 1})["results"] == {"R@1": 0.5}
     monkeypatch.delenv(package_data.RESULTS_DIR_ENV)

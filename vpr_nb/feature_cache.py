@@ -25,7 +25,7 @@ in ``train()``), Dropout and any unknown module. The frozen weights are fingerpr
 **Memory.** ``float32`` storage by default: a course-backbone map (width 48: 96 channels × 8 × 12 for a
 32×48 image) takes 36 KiB and its key (the 3 × 32 × 48 input floats) 18 KiB, so the tiny city's train + val
 splits (1,599 images) take 84.3 MiB and the tiny route's (1,434 images) 75.6 MiB. ``float16`` storage halves
-the maps but changes descriptors by about 3e-4 (measured in ``bench/bench_frozen_cache.py``), more than the
+the maps but changes descriptors by about 1e-4 (measured in ``bench/bench_frozen_cache.py``), more than the
 1e-5 the cached path must stay within, so it is only an option. Beyond ``max_bytes`` (maps and keys) new maps
 are computed and not stored (counted in ``bypassed``). Maps are stored channels-last (``[h, w, C]``), the
 layout the course's images give them, so a batch of hits is handed back without a copy.
@@ -115,7 +115,7 @@ class FrozenFeatureCache:
     """Per-image memo of a backbone's frozen layers (see the module docstring).
 
     Args:
-        dtype: storage precision, ``"float32"`` (exact) or ``"float16"`` (half the memory, ~3e-4 error).
+        dtype: storage precision, ``"float32"`` (exact) or ``"float16"`` (maps in half the memory, ~1e-4 error).
         max_bytes: stop storing new maps beyond this size (they are then computed on every call).
 
     Counters: ``hits`` and ``misses`` (images), ``bypassed`` (misses not stored because the cache was full),
