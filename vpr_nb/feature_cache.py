@@ -167,7 +167,7 @@ class FrozenFeatureCache:
         """Store ``maps`` ``[k, C, h, w]`` (one per image, no spare rows) as ``[h, w, C]`` copies; returns their
         row indices, or None when they and their keys (``key_bytes`` each) do not fit in ``max_bytes``."""
         nhwc = maps.detach().permute(0, 2, 3, 1)
-        each = nhwc[0].numel() * torch.empty((), dtype=self.dtype).element_size()
+        each = nhwc[0].numel() * self.dtype.itemsize
         if self._maps and self._maps[0].shape != nhwc.shape[1:]:
             h, w, c = self._maps[0].shape
             raise ValueError(f"the frozen blocks gave maps of shape {tuple(maps.shape[1:])}, the cache holds "
