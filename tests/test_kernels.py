@@ -88,6 +88,29 @@ def test_the_pinned_fingerprint_is_the_recorded_one():
     import json
 
     got = json.loads(_python(code, kernels.pinned_environ()).strip().splitlines()[-1])
+    l1d = kernels.l1d_per_thread()
+    hint = ("" if l1d is None or l1d >= kernels.NNPACK_ONE_BLOCK_L1D else
+            f"; this processor has {l1d // 1024} KiB of L1 data cache per hardware thread, so NNPACK sums the "
+            f"backbone's 1x1 projection in two blocks (vpr_nb.kernels.apply_in_process)")
     assert got == PINNED_FINGERPRINT, (
         f"the pinned CPU kernels give other numbers on this machine ({kernels.processor_name()}): {got}; "
-        f"the notebooks' stored trained numbers will differ here")
+        f"the notebooks' stored trained numbers will differ here{hint}")
+
+
+def test_l1d_per_thread_reads_sysfs(tmp_path):
+    def cache(index, level, kind, size, shared):
+        d = tmp_path / "cache" / f"index{index}"
+        d.mkdir(parents=True)
+        for name, value in (("level", level), ("type", kind), ("size", size), ("shared_cpu_list", shared)):
+            (d / name).write_text(value + "\n")
+
+    cache(0, "1", "Instruction", "32K", "0,8")
+    cache(1, "1", "Data", "32K", "0,8")          # 32 KiB shared by two hyper-threads: NNPACK's two blocks
+    cache(2, "2", "Unified", "1024K", "0,8")
+    assert kernels.l1d_per_thread(str(tmp_path)) == 16 * 1024 < kernels.NNPACK_ONE_BLOCK_L1D
+    (tmp_path / "cache" / "index1" / "size").write_text("48K\n")
+    (tmp_path / "cache" / "index1" / "shared_cpu_list").write_text("0-1\n")
+    assert kernels.l1d_per_thread(str(tmp_path)) == kernels.NNPACK_ONE_BLOCK_L1D
+    (tmp_path / "cache" / "index1" / "size").write_text("garbage\n")
+    assert kernels.l1d_per_thread(str(tmp_path)) is None
+    assert kernels.l1d_per_thread(str(tmp_path / "missing")) is None
