@@ -59,6 +59,7 @@ $(DEV_STAMP): $(STAMP) requirements-dev.txt
 # $(1): the bin folder of the environment to test
 define run_tests
 	$(1)/ruff check
+	$(1)/lint-imports
 	@test -x /usr/bin/chromium || echo "note: /usr/bin/chromium is missing, so the JupyterLab browser test is skipped (sudo apt-get install -y chromium)"
 	VPR_NB_ALLOW_SKIP_BROWSER=$$(test -x /usr/bin/chromium && echo 0 || echo 1) $(1)/python -m pytest -p no:cacheprovider -q $(TEST_PATHS)
 endef

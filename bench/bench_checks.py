@@ -26,14 +26,14 @@ from typing import Callable
 
 import torch
 
-from vpr_nb import aggregation, losses, models
 from vpr_nb.aggregation import SALAD, NetVLAD
 from vpr_nb.losses import triplet_loss
 from vpr_nb.models import build_model
 
 TARGET = 0.03   # checks' share of NetVLAD and SALAD inference
-_CHECKS = {aggregation: ("check_tensor", "_check_feature_map"), models: ("check_tensor", "_check_images"),
-           losses: ("check_tensor",)}
+# the check functions, in every module of these packages that binds one (a package's modules import them by name)
+_PACKAGES = ("vpr_nb.aggregation", "vpr_nb.models", "vpr_nb.losses")
+_CHECK_NAMES = ("check_tensor", "_check_feature_map", "_check_images")
 
 
 def _passthrough(x, *args, **kwargs):
@@ -43,7 +43,8 @@ def _passthrough(x, *args, **kwargs):
 @contextlib.contextmanager
 def checks_off():
     """Replace the tensor checks of the layers, models and losses by pass-throughs."""
-    saved = [(mod, name, getattr(mod, name)) for mod, names in _CHECKS.items() for name in names if hasattr(mod, name)]
+    modules = [m for key, m in sorted(sys.modules.items()) if key.startswith(_PACKAGES)]
+    saved = [(mod, name, getattr(mod, name)) for mod in modules for name in _CHECK_NAMES if hasattr(mod, name)]
     for mod, name, _ in saved:
         setattr(mod, name, _passthrough)
     try:

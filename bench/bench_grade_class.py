@@ -137,6 +137,8 @@ def grade_class(folder: Path, source_dir: Path, csv_path: Path, jobs: int, timeo
            "--csv", str(csv_path), "--jobs", str(jobs), "--timeout", str(timeout)]
     if sandbox:
         cmd += ["--sandbox", sandbox]
+    if sandbox == "process":        # the bench's own generated submissions: trusted work, graded without bubblewrap
+        cmd += ["--trusted"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     seconds = time.perf_counter() - t0

@@ -36,13 +36,13 @@
 PROFILE = "ci"  # "ci": the tiny worlds (fast, what CI checks); "reproduce": the larger "small" worlds
 
 # %%
+import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import dataclasses
 import time
 
 import matplotlib.pyplot as plt
 import numpy as np
 
-import vpr_nb.notebook
 from vpr_nb import plots
 from vpr_nb.evaluation import positives_within, raw_pixel_descriptors
 from vpr_nb.probes import near_duplicate_probe

@@ -32,13 +32,13 @@
 PROFILE = "ci"  # "ci": 2 world seeds, 3 values per knob (fast, what CI checks); "reproduce": 5 seeds, more values
 
 # %%
+import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import time
 
 import faiss
 import matplotlib.pyplot as plt
 import numpy as np
 
-import vpr_nb.notebook
 from vpr_nb import plots
 from vpr_nb.evaluation import (compute_descriptors, positives_within, raw_pixel_descriptors, recall_at_n,
                                retrieve)

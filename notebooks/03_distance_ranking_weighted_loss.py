@@ -40,6 +40,7 @@
 PROFILE = "ci"  # "ci": 1 seed, 1 short epoch per row (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
 
 # %% tags=["grade-deps:ex-03-ce-tau"]
+import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import dataclasses
 import time
 
@@ -48,7 +49,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-import vpr_nb.notebook
 from vpr_nb import results
 from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, evaluate_model, images_to_tensor,
                                raw_pixel_descriptors)

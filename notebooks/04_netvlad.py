@@ -38,6 +38,7 @@
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
 
 # %% tags=["grade-deps:ex-04-soft-share"]
+import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import copy
 import time
 
@@ -46,10 +47,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-import vpr_nb.notebook
 from vpr_nb import plots, results
 from vpr_nb.aggregation import GeM, NetVLAD, kmeans_centroids, sample_local_descriptors
-from vpr_nb.config import LOSSES
+from vpr_nb.losses import LOSSES
 from vpr_nb.evaluation import (images_to_tensor,
                                model_recall_row, raw_pixel_descriptors, recall_row)
 from vpr_nb.models import build_model, init_netvlad

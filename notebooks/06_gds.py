@@ -39,6 +39,7 @@
 PROFILE = "ci"  # "ci": 1 fine-tuning seed, 2 epochs (what CI checks); "reproduce": 5 seeds, lr search, full budget
 
 # %% tags=["grade-deps:ex-06-misorder-empirical"]
+import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import dataclasses
 import math
 import time
@@ -47,7 +48,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy.special import ndtr
 
-import vpr_nb.notebook
 from vpr_nb import plots, results
 from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, raw_pixel_descriptors
 from vpr_nb.gds import gds_profile, misordering_matrix, misordering_probability, query_topk, topk_order_agreement

@@ -40,6 +40,7 @@
 PROFILE = "ci"  # "ci": 1 seed, one epoch per arm (what CI checks); "reproduce": 5 paired seeds, until validation plateaus
 
 # %% tags=["grade-deps:ex-07-close-pairs"]
+import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import dataclasses
 import time
 
@@ -47,7 +48,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy.spatial import cKDTree
 
-import vpr_nb.notebook
 from vpr_nb import results
 from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, raw_pixel_descriptors, retrieve
 from vpr_nb.gds import gds_profile, misordering_probability, topk_order_agreement

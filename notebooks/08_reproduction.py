@@ -37,6 +37,7 @@ RUNS_DIR = None           # None: list no runs of yours, so the stored output ne
                          # "../results" lists the runs of python -m vpr_nb.train --out results/<name>
 
 # %% tags=["grade-deps:ex-08-overrides-between"]
+import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import json
 import os
 import tempfile
@@ -45,7 +46,6 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-import vpr_nb.notebook
 from vpr_nb.report import RESULTS_ENV, record
 from vpr_nb.train import PRESETS, resolve_config, run
 

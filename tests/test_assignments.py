@@ -21,6 +21,9 @@ from vpr_nb.grading.spec import collect
 ROOT = Path(__file__).resolve().parents[1]
 COURSE = sorted((ROOT / "notebooks").glob("0[2-9]_*.ipynb"))
 BACKENDS = ["process"] + (["bwrap"] if sandbox.backend_works("bwrap") else [])
+# The grading tests below grade the tests' own notebooks, trusted work: ``trusted=True`` / ``--trusted`` grades
+# them in bubblewrap where it works and without a sandbox elsewhere (the process backend always needs it);
+# untrusted work without bubblewrap is refused (tests/test_grading_isolation.py).
 
 
 def _tiny(tmp_path):
@@ -60,34 +63,34 @@ def test_student_version_strips_solutions_hidden_tests_and_locks_read_only_cells
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_grades_instructor_full_student_zero_pasted_back_full_wrong_with_feedback(tmp_path, backend):
     src = _tiny(tmp_path)
-    assert [g.points for g in grade(src, src, backend=backend)] == [2.0]
+    assert [g.points for g in grade(src, src, backend=backend, trusted=True)] == [2.0]
     stu_path = generate(src.parent, tmp_path / "students")[0]
-    zero = grade(stu_path, src, backend=backend)
+    zero = grade(stu_path, src, backend=backend, trusted=True)
     assert [g.points for g in zero] == [0.0] and "NotImplementedError" in zero[0].error
     stu = answer(nbformat.read(stu_path, as_version=4), "ex-square", "return x ** 2")
     stu.cells[3].source = "pass  # a student deleting the visible tests changes nothing"
-    assert [g.points for g in grade(write(stu, tmp_path / "pasted.ipynb"), src, backend=backend)] == [2.0]
+    assert [g.points for g in grade(write(stu, tmp_path / "pasted.ipynb"), src, backend=backend, trusted=True)] == [2.0]
     wrong = answer(nbformat.read(stu_path, as_version=4), "ex-square", "return abs(x) * 3")
-    got = grade(write(wrong, tmp_path / "wrong.ipynb"), src, backend=backend)
+    got = grade(write(wrong, tmp_path / "wrong.ipynb"), src, backend=backend, trusted=True)
     assert got[0].points == 0.0 and got[0].error == "square(-2): expected 4, got 6", got[0].error
 
 
 @pytest.mark.slow
 def test_only_dependency_cells_run_and_deleted_or_edited_tests_change_nothing(tmp_path):
     src = _two(tmp_path)
-    assert [(g.grade_id, g.points) for g in grade(src, src)] == [("ex-square-tests", 2.0), ("ex-cube-tests", 1.0)]
+    assert [(g.grade_id, g.points) for g in grade(src, src, trusted=True)] == [("ex-square-tests", 2.0), ("ex-cube-tests", 1.0)]
     stu = submission(two_exercises(), "return x * x", "return x * x * x")
     del stu.cells[4]                                          # the square tests, deleted
     stu.cells[5].source = "assert False"                      # the cube tests, edited
     stu.cells[0].source = "SCALE = 1000"                      # the parameters cell: the instructor's copy is used
-    got = grade(write(stu, tmp_path / "edited.ipynb"), src)
+    got = grade(write(stu, tmp_path / "edited.ipynb"), src, trusted=True)
     assert [g.points for g in got] == [2.0, 1.0], [g.error for g in got]
 
 
 def test_feedback_names_expected_and_got_per_exercise(tmp_path, capsys):
     src = _two(tmp_path)
     path = write(submission(two_exercises(), "return x + x", "return x * x * x"), tmp_path / "wrong.ipynb")
-    assert main(["grade", str(path), "--source", str(src)]) == 0
+    assert main(["grade", str(path), "--source", str(src), "--trusted"]) == 0
     out = capsys.readouterr().out
     assert "square(3): expected 9, got 6" in out and "ex-cube-tests" in out and "total" in out and "1 / 3" in out
     assert "sandbox:" in out
@@ -100,14 +103,14 @@ def test_type_errors_and_raised_errors_say_what_came_back(tmp_path):
              "return object()": "square(3): square returned a builtins.object (only numbers",
              "raise ValueError('no squares today')": "square(3): square raised ValueError: no squares today"}
     for body, want in cases.items():
-        got = grade(write(submission(two_exercises(), body), tmp_path / "t.ipynb"), src, only=["ex-square"])
+        got = grade(write(submission(two_exercises(), body), tmp_path / "t.ipynb"), src, only=["ex-square"], trusted=True)
         assert got[0].points == 0.0 and got[0].error.startswith(want), (body, got[0].error)
     stu = submission(two_exercises())
     stu.cells[3].source = "def squared(x):\n    return x * x"
-    got = grade(write(stu, tmp_path / "t.ipynb"), src, only=["ex-square"])
+    got = grade(write(stu, tmp_path / "t.ipynb"), src, only=["ex-square"], trusted=True)
     assert "does not define square" in got[0].error
     stu.cells[3].source = "def square(x)\n    return x"
-    got = grade(write(stu, tmp_path / "t.ipynb"), src, only=["ex-square"])
+    got = grade(write(stu, tmp_path / "t.ipynb"), src, only=["ex-square"], trusted=True)
     assert "does not parse" in got[0].error
 
 
@@ -115,7 +118,7 @@ def test_type_errors_and_raised_errors_say_what_came_back(tmp_path):
 def test_endless_loop_times_out_and_the_other_exercise_is_graded(tmp_path):
     src = _two(tmp_path)
     stu = submission(two_exercises(), "return x * x", "while True:\n    pass")
-    got = grade(write(stu, tmp_path / "loop.ipynb"), src, timeout=4)
+    got = grade(write(stu, tmp_path / "loop.ipynb"), src, timeout=4, trusted=True)
     assert got[0].points == 2.0, got[0].error
     assert got[1].points == 0.0 and "timed out after 4 s" in got[1].error, got[1].error
 
@@ -125,11 +128,11 @@ def test_dead_process_scores_zero_and_the_next_exercise_gets_a_fresh_one(tmp_pat
     src = _two(tmp_path)
     stu = submission(two_exercises(), "return x * x", "import os\nos._exit(1)")
     stu.cells[3].source = "import os\nos._exit(1)\n" + stu.cells[3].source      # refused before it runs
-    got = grade(write(stu, tmp_path / "dead.ipynb"), src, timeout=60)
+    got = grade(write(stu, tmp_path / "dead.ipynb"), src, timeout=60, trusted=True)
     assert got[0].points == 0.0 and "imports os" in got[0].error, got[0].error
     assert got[1].points == 0.0 and "ended before it answered (exit code 1)" in got[1].error, got[1].error
     fine = submission(two_exercises(), "return x * x", "import os\nos._exit(1)")
-    got = grade(write(fine, tmp_path / "dead.ipynb"), src, timeout=60)
+    got = grade(write(fine, tmp_path / "dead.ipynb"), src, timeout=60, trusted=True)
     assert got[0].points == 2.0 and got[1].points == 0.0, [g.error for g in got]
 
 
@@ -137,7 +140,7 @@ def test_missing_solution_cell_scores_zero_with_the_reason(tmp_path):
     src = _two(tmp_path)
     stu = submission(two_exercises())
     del stu.cells[5]                                          # the cube solution cell
-    got = grade(write(stu, tmp_path / "missing.ipynb"), src)
+    got = grade(write(stu, tmp_path / "missing.ipynb"), src, trusted=True)
     assert got[0].points == 2.0 and got[1].points == 0.0 and "missing" in got[1].error
 
 
@@ -150,7 +153,7 @@ def test_grade_class_writes_a_csv_per_student_and_exercise_atomically(tmp_path, 
     (tmp_path / "sub" / "carol" / NAME).write_text("{not json")
     out = tmp_path / "grades" / "scores.csv"
     assert main(["grade-class", str(tmp_path / "sub"), "--source", str(src.parent), "--csv", str(out),
-                 "--jobs", "2"]) == 0
+                 "--jobs", "2", "--trusted"]) == 0
     rows = list(csv.DictReader(out.open()))
     got = {(r["student"], r["exercise"]): float(r["points"]) for r in rows}
     assert got == {("alice", "ex-square"): 2.0, ("alice", "ex-cube"): 1.0, ("bob", "ex-square"): 0.0,
@@ -158,6 +161,7 @@ def test_grade_class_writes_a_csv_per_student_and_exercise_atomically(tmp_path, 
     assert [r["student"] for r in rows] == ["alice"] * 2 + ["bob"] * 2 + ["carol"] * 2
     assert all(r["reason"] for r in rows if r["student"] == "carol") and "cannot read" in rows[-1]["reason"]
     assert sorted(p.name for p in out.parent.iterdir()) == ["scores.csv"], "a temporary grades file was left"
+    assert {r["sandbox"] for r in rows} == {"bubblewrap" if "bwrap" in BACKENDS else "graded WITHOUT a sandbox (--trusted)"}
     assert "3 students" in capsys.readouterr().out
     with pytest.raises(FileNotFoundError, match="no submissions"):
         grade_class(tmp_path / "instructor", src.parent)
@@ -383,7 +387,7 @@ def test_no_graded_solution_appears_line_for_line_elsewhere_in_the_student_noteb
                 assert not where, f"{path.name}: the answer line `{code}` of {gid} appears in student cell(s) {where}"
 
 
-UNDERSTANDING = {   # notebook: the graded exercises in which the student predicts or measures (README lists them)
+UNDERSTANDING = {   # notebook: the graded exercises in which the student predicts or measures (docs/teaching.md lists them)
     "02_triplet_baseline.ipynb": ["ex-02-radius-predict", "ex-02-radius-measure"],
     "03_distance_ranking_weighted_loss.ipynb": ["ex-03-step-predict", "ex-03-equal-step"],
     "04_netvlad.ipynb": ["ex-04-zero-predict", "ex-04-zero-descriptor"],
@@ -451,15 +455,15 @@ def test_every_graded_notebook_has_a_shortcut_below():
 def test_course_exercise_instructor_full_stub_zero_library_shortcut_zero(path, tmp_path):
     """Each course exercise: the instructor's answer earns its points (running only its dependencies, in
     the sandbox); the student version scores 0; the library route scores 0 and the report says it used vpr_nb."""
-    full = grade(path, path, timeout=120)
+    full = grade(path, path, timeout=120, trusted=True)
     assert all(g.points == g.max_points for g in full), [(g.grade_id, g.error) for g in full]
     stub = student_version(nbformat.read(path, as_version=4))
-    zero = grade(write(stub, tmp_path / "stub" / path.name), path, timeout=120)
+    zero = grade(write(stub, tmp_path / "stub" / path.name), path, timeout=120, trusted=True)
     assert all(g.points == 0.0 and g.error for g in zero), [(g.grade_id, g.error) for g in zero]
     for key in (k for k in SHORTCUTS if k.split(",")[0] == path.name):
         gid, body = SHORTCUTS[key]
         stu = answer(student_version(nbformat.read(path, as_version=4)), gid, body)
-        got = grade(write(stu, tmp_path / path.name), path, timeout=120, only=[gid])
+        got = grade(write(stu, tmp_path / path.name), path, timeout=120, only=[gid], trusted=True)
         assert [g.points for g in got] == [0.0] and "vpr_nb" in got[0].error, (key, got[0].error)
 
 
@@ -513,7 +517,7 @@ def test_grade_class_on_a_generated_class_of_a_course_notebook(tmp_path):
     plan = bench.make_class(source, tmp_path / "submitted", 10)
     assert {"correct", "wrong", "cheat-abs", "crash-exit", "cheat-traceback", "stub"} <= {k for k, _ in plan.values()}
     rows = grade_class(tmp_path / "submitted", tmp_path / "source", tmp_path / "scores.csv", timeout=30, jobs=2,
-                       log=lambda *_: None)
+                       log=lambda *_: None, trusted=True)
     assert len(rows) == 10 * 3
     assert bench.check_csv(tmp_path / "scores.csv", plan) == []
 

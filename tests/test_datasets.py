@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from vpr_nb import datasets as D
-from vpr_nb.evaluation import IMAGENET_MEAN, IMAGENET_STD
+from vpr_nb.image_tensors import IMAGENET_MEAN, IMAGENET_STD
 
 FIX = Path(__file__).resolve().parents[1] / "data_fixtures"
 
@@ -658,7 +658,7 @@ def test_one_region_aware_positives_for_every_split():
 
 
 def test_one_imagenet_normalisation_path():
-    from vpr_nb.evaluation import images_to_tensor, normalize_imagenet
+    from vpr_nb.image_tensors import images_to_tensor, normalize_imagenet
 
     s = D.load(FIX / "pitts" / "datasets" / "pitts30k_test.mat", "pitts")
     raw = D.read_image(s.db_paths[0], (6, 8), normalize=False)

@@ -1,20 +1,27 @@
 """The commands on wrong inputs and faults: one ``error: ...`` line naming the file / field and the fix, exit
 status 2, no traceback, nothing written before the checks that need no data, and a ``--out`` that a failed
-start leaves reusable. Also what a run writes besides its results: the CSV logs, TensorBoard events when
+start leaves reusable; warnings as one ``warning: ...`` line; Ctrl-C as one line and exit status 130 with the
+run resumable. Also what a run writes besides its results: the CSV logs, ``train.log``, TensorBoard events when
 installed, and the one-screen summary."""
 import errno
 import json
+import logging
 import os
+import shlex
 import shutil
+import warnings
 from pathlib import Path
 
+import numpy
 import pytest
 import torch
 
+from vpr_nb import cli
 from vpr_nb import config as C
 from vpr_nb import experiment as E
 from vpr_nb.atomic import atomic_write_text
 from vpr_nb.evaluate import main as evaluate_main
+from vpr_nb.kernels import cpu_description
 from vpr_nb.pretrain import main as pretrain_main
 from vpr_nb.run_folder import FolderLock, OutputFolder
 from vpr_nb.run_log import RunLog, tensorboard_writer_class
@@ -339,6 +346,90 @@ def test_tensorboard_events_when_installed(tmp_path):
     ea.Reload()
     assert [(e.step, e.value) for e in ea.Scalars("train/loss")] == [(0, 0.0), (1, 1.0), (2, 10.0), (3, 11.0), (4, 12.0)]
     assert [e.step for e in ea.Scalars("val/R@1")] == [1, 4]
+
+
+# ------------------------------------------------------------------------------------------ Ctrl-C and warnings
+def _ctrl_c_at_call(monkeypatch, n: int):
+    """Ctrl-C (KeyboardInterrupt) in the ``n``-th optimiser step of the process (counted from 1)."""
+    import vpr_nb.training.loop as loop
+    real, calls = loop.optimizer_step, []
+
+    def step(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+    monkeypatch.setattr(loop, "optimizer_step", step)
+
+
+def test_ctrl_c_is_one_line_status_130_and_the_run_resumes(tmp_path, capsys, monkeypatch):
+    out, straight = tmp_path / "run", tmp_path / "straight"
+    _ctrl_c_at_call(monkeypatch, 5 + 3)              # 5 steps per epoch: epoch 2, after its 2nd step
+    assert train_main(tiny(epochs=2) + ["--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"interrupted at epoch 2, step 2; resume with: python -m vpr_nb.train --resume "
+                                f"--out {out}"], err
+    assert load_checkpoint(out / "checkpoints" / "last.pt")["epoch"] == 0     # epoch 1 is saved, whole
+    assert not (out / ".lock").exists()
+    last = (out / "train.log").read_text().splitlines()[-1]
+    assert "interrupted at epoch 2, step 2; resume with:" in last and last.endswith("(last saved: epoch 1)")
+    monkeypatch.undo()
+    assert train_main(["--resume", "--out", str(out), "--no-progress"]) == 0   # epoch 2 again, from its start
+    assert train_main(tiny(epochs=2) + ["--out", str(straight)]) == 0
+    a, b = (load_checkpoint(d / "checkpoints" / "last.pt")["model"] for d in (out, straight))
+    assert all(torch.equal(a[k], b[k]) for k in a)                 # nothing lost
+    assert [e["loss"] for e in json.loads((out / "history.json").read_text())["epochs"]] == \
+        [e["loss"] for e in json.loads((straight / "history.json").read_text())["epochs"]]
+
+
+def test_ctrl_c_before_the_first_checkpoint_leaves_nothing_and_says_so(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    _ctrl_c_at_call(monkeypatch, 1)
+    argv = tiny() + ["--out", str(out)]
+    assert train_main(argv) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"interrupted at epoch 1, step 0; nothing to resume in {out} "), err
+    assert err[0].endswith("start again with: python -m vpr_nb.train " + " ".join(map(shlex.quote, argv)))
+    assert not out.exists()                         # the folder is left as it was found: the command can be rerun
+
+
+def test_a_warning_is_one_line_without_a_path_and_goes_into_train_log(tmp_path, capsys):
+    out = tmp_path / "run"
+    shown = warnings.showwarning
+    assert train_main(tiny("", "eval.ns=[1,5,1000]") + ["--out", str(out)]) == 0     # more than the 172 images
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["warning: Recall@N for N = [1000] is larger than the database (172 images): it equals "
+                   "Recall@172, which is reported for those N"], err
+    assert "warning: Recall@N for N = [1000] is larger" in (out / "train.log").read_text()
+    assert warnings.showwarning is shown            # the CLI's channel is gone once main returns (notebooks)
+    with cli.diagnostics():
+        warnings.warn("a\nb", RuntimeWarning)
+        logging.getLogger("vpr_nb.test").warning("from logging")
+        logging.getLogger("vpr_nb.test").error("an error")
+    assert capsys.readouterr().err.splitlines() == ["warning: a b (RuntimeWarning)", "warning: from logging",
+                                                    "error: an error"]
+
+
+def test_every_run_writes_train_log_and_a_resume_appends(tmp_path):
+    out = tmp_path / "run"
+    assert train_main(tiny(epochs=2) + ["--out", str(out)]) == 0
+    first = (out / "train.log").read_text()
+    lines = [line[20:] for line in first.splitlines()]             # after the "YYYY-mm-dd HH:MM:SS " stamp
+    assert lines[0] == f"start: a new run in {out}"
+    train_cfg = next(json.loads(line[len("config train: "):]) for line in lines if line.startswith("config train: "))
+    assert train_cfg["epochs"] == 2 and train_cfg["step_size"] == 1
+    env = next(line for line in lines if line.startswith("environment: "))
+    assert f"torch {torch.__version__}" in env and f"numpy {numpy.__version__}" in env and "device cpu" in env
+    assert cpu_description() in env
+    epochs = [line for line in lines if line.startswith("epoch ")]
+    assert [e.split(":")[0] for e in epochs] == ["epoch 1/2", "epoch 2/2"] and all("val R@1 " in e for e in epochs)
+    history = json.loads((out / "history.json").read_text())["epochs"]
+    assert f"loss {history[1]['loss']:.4f}" in epochs[1] and f"R@5 {history[1]['val']['5']:.4f}" in epochs[1]
+    assert lines[-1].startswith("end: 2 epochs, selected epoch ") and "test R@1 " in lines[-1]
+    assert train_main(["--resume", "--out", str(out), "--no-progress"]) == 0
+    again = (out / "train.log").read_text()
+    assert again.startswith(first) and f"start: resuming the run in {out}" in again[len(first):]
+    assert "2 of 2 epochs trained" in again[len(first):] and again.rstrip().splitlines()[-1][20:].startswith("end: ")
 
 
 # ------------------------------------------------------------------------------------------ pretrain

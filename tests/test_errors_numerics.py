@@ -1,5 +1,7 @@
 """Numerical inputs: half-precision descriptors, Recall@N beyond the database, out-of-range predictions,
 a GDS bin width asking for too many bins."""
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -16,14 +18,50 @@ def _unit(n, d, seed):
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
 def test_half_precision_descriptors_are_searched_in_float32(dtype):
     db, q = _unit(40, 8, 0), _unit(5, 8, 1)
-    dist, idx = retrieve(db.to(dtype), q.to(dtype), 3)
+    with pytest.warns(UserWarning, match="upcast to float32"):
+        dist, idx = retrieve(db.to(dtype), q.to(dtype), 3)
     _, ref = retrieve(db, q, 3)
     assert dist.dtype == np.float32 and idx.dtype == np.int64
     assert (idx[:, 0] == ref[:, 0]).mean() >= 0.8            # rounding may swap near ties, nothing else
-    rec = evaluate_descriptors(db.to(dtype), q.to(dtype), torch.zeros(40, 2), torch.zeros(5, 2), 1.0, ns=(1,))
+    with pytest.warns(UserWarning, match="upcast to float32"):
+        rec = evaluate_descriptors(db.to(dtype), q.to(dtype), torch.zeros(40, 2), torch.zeros(5, 2), 1.0, ns=(1,))
     assert rec == {1: 1.0}
     with pytest.raises(ValueError, match="L2-normalised"):
         retrieve((2 * db).to(dtype), q.to(dtype), 3)
+
+
+def _separated(seed=0):
+    """8 database descriptors far apart (rows of a rotation) and 8 queries near them in another order."""
+    rot, _ = np.linalg.qr(np.random.default_rng(seed).standard_normal((8, 8)))
+    db = rot.astype(np.float32)
+    q = db[[3, 0, 7, 1, 6, 2, 5, 4]] + 0.05 * np.random.default_rng(seed + 1).standard_normal((8, 8)).astype(np.float32)
+    return db, q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("to, name", [(lambda x: torch.from_numpy(x).to(torch.bfloat16), "bfloat16"),
+                                      (lambda x: torch.from_numpy(x).to(torch.float16), "float16"),
+                                      (lambda x: x.astype(np.float16), "float16")])
+def test_low_precision_descriptors_warn_naming_the_precision(to, name):
+    db, q = _separated()
+    _, ref = retrieve(db, q, 3)
+    with pytest.warns(UserWarning, match=rf"retrieve got {name} descriptors \(db_desc, q_desc\); upcast to float32 "
+                                         r"for the exact search"):
+        dist, idx = retrieve(to(db), to(q), 3)
+    assert idx[:, 0].tolist() == ref[:, 0].tolist() == [3, 0, 7, 1, 6, 2, 5, 4]   # the same neighbours
+    assert dist.dtype == np.float32 and idx.dtype == np.int64
+    with pytest.warns(UserWarning, match=rf"retrieve got {name} descriptors \(q_desc\); upcast"):
+        assert retrieve(db, to(q), 1)[1][:, 0].tolist() == ref[:, 0].tolist()
+
+
+def test_float32_descriptors_are_searched_as_they_are_without_a_warning():
+    db, q = _separated()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        dist, idx = retrieve(db, q, 8)
+        retrieve(torch.from_numpy(db), torch.from_numpy(q), 8)
+    sims = q @ db.T                                              # the brute-force inner products
+    assert idx.tolist() == np.argsort(-sims, axis=1, kind="stable").tolist()
+    np.testing.assert_allclose(dist, np.take_along_axis(2 - 2 * sims, idx, axis=1), atol=1e-5)
 
 
 def test_recall_at_n_beyond_the_database_is_recall_at_the_database_size():

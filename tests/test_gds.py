@@ -353,7 +353,9 @@ def _previous_gds_profile(db, db_utm, max_distance, bin_width, q=None, q_utm=Non
     naive formula below), so the rest of the pipeline must give exactly the same outputs."""
     import math
     from scipy.spatial import cKDTree
-    from vpr_nb.gds import _bin_index, _bin_quantiles, _pair_descriptor_distances, _weighted_line
+    from vpr_nb.gds.binning import _bin_index, _bin_quantiles
+    from vpr_nb.gds.pairs import _pair_descriptor_distances
+    from vpr_nb.gds.profile import _weighted_line
     db_tree = cKDTree(db_utm)
     if q is None:
         ij = db_tree.query_pairs(max_distance, output_type="ndarray")
@@ -441,7 +443,7 @@ def _exact_desc(a, b, i, j):
 def test_pair_distances_equal_the_naive_per_pair_formulas(mode):
     # geo: the chunked column-wise distances give exactly the floats of sqrt(((u_i - u_j) ** 2).sum());
     # descriptors: the Gram-matrix (dot product) distances agree with the difference formula to float32 rounding
-    from vpr_nb.gds import _geo_pairs, _pair_descriptor_distances
+    from vpr_nb.gds.pairs import _geo_pairs, _pair_descriptor_distances
     rng = np.random.default_rng(5)
     db_utm = np.cumsum(rng.normal(scale=2.0, size=(1500, 2)), axis=0) + [4.5e5, 5.1e6]
     db = rng.normal(size=(1500, 32)).astype(np.float32)
@@ -467,7 +469,7 @@ def test_pair_distances_equal_the_naive_per_pair_formulas(mode):
 def test_pair_distances_of_unit_descriptors_within_1e5_including_near_duplicates(mode, dim):
     # unit-norm descriptors whose neighbours along the track are near-duplicates (noise 0 up to 1e-1):
     # the dot formula cancels there, so those pairs must come from the difference; all within abs 1e-5
-    from vpr_nb.gds import _geo_pairs, _pair_descriptor_distances
+    from vpr_nb.gds.pairs import _geo_pairs, _pair_descriptor_distances
     rng = np.random.default_rng(21)
     n = 2000
     db_utm = np.cumsum(rng.normal(scale=1.0, size=(n, 2)), axis=0)
@@ -493,7 +495,7 @@ def test_pair_distances_of_unit_descriptors_within_1e5_including_near_duplicates
 
 def test_pair_distances_scattered_pairs_and_scaled_descriptors():
     # pairs in random order touch many images per chunk (difference formula); descriptors far from unit norm
-    from vpr_nb.gds import _pair_descriptor_distances
+    from vpr_nb.gds.pairs import _pair_descriptor_distances
     rng = np.random.default_rng(8)
     a = (300.0 * rng.normal(size=(5000, 64))).astype(np.float32)
     b = (1e-3 * rng.normal(size=(4000, 64))).astype(np.float32)
@@ -511,7 +513,7 @@ def test_pair_distances_scattered_pairs_and_scaled_descriptors():
 def test_bin_order_statistics_equal_the_quantiles_of_the_sorted_values(num_bins):
     # the radix selection (only the buckets holding the needed ranks are sorted) against a full sort:
     # ties, zeros, a bin of equal values (every pair in one bucket), a one-pair bin, empty bins
-    from vpr_nb.gds import _bin_order_statistics, _bin_quantiles
+    from vpr_nb.gds.binning import _bin_order_statistics, _bin_quantiles
     rng = np.random.default_rng(5)
     n = 30_000
     b = rng.integers(0, num_bins, size=n)

@@ -183,7 +183,8 @@ def _grade_class(tmp, attacks: dict, backend: str):
         write(submission(ins, sub_in(sq or "return x * x"), sub_in(cu or "return x ** 3")), sub / f"a{k + 1:02d}" / NAME)
     before, package = src.read_bytes(), _digest(SITE)
     proc = subprocess.run([sys.executable, "-m", "vpr_nb.assignments", "grade-class", str(sub), "--source", str(src_dir),
-                           "--csv", str(out_csv), "--timeout", str(TIMEOUT), "--jobs", "2", "--sandbox", backend],
+                           "--csv", str(out_csv), "--timeout", str(TIMEOUT), "--jobs", "2", "--sandbox", backend]
+                          + (["--trusted"] if backend == "process" else []),       # no sandbox: refused without it
                           capture_output=True, text=True, timeout=1800, cwd=tmp)
     time.sleep(5)                      # longer than any delayed write an attack scheduled
     rows = list(csv.DictReader(out_csv.open())) if out_csv.exists() else []
@@ -250,7 +251,7 @@ def test_every_attack_scores_zero_and_harms_no_one_under_bubblewrap(tmp_path):
         _cleanup()
 
 
-# what holds without an OS sandbox (and without a separate uid): README "For teachers" lists the rest
+# what holds without an OS sandbox (and without a separate uid): docs/teaching.md lists the rest
 PROCESS_SAFE = ["replace assert_own_code by a no-op", "patch builtins.abs", "patch numpy and torch",
                 "silence tracebacks", "a pickle for the grader", "leave a CPU-burning process behind",
                 "fork and sleep forever", "sleep forever", "end its own process", "exhaust memory",
@@ -259,6 +260,7 @@ PROCESS_SAFE = ["replace assert_own_code by a no-op", "patch builtins.abs", "pat
 
 @pytest.mark.slow
 def test_the_process_backend_stops_the_cheats_and_cleans_up(tmp_path):
+    """With --trusted (the process backend is no sandbox: refused without it), and said on every report."""
     attacks = {k: ALL[k] for k in PROCESS_SAFE}
     # relative to the working folder, the old cheat: the instructor's notebook is not there
     attacks["read the solution next to it"] = (None, ALL["read the instructor's solution"][1]
@@ -266,6 +268,8 @@ def test_the_process_backend_stops_the_cheats_and_cleans_up(tmp_path):
     try:
         result = _grade_class(tmp_path, attacks, "process")
         _check_class(result, attacks)
+        assert "graded WITHOUT a sandbox (--trusted)" in result["proc"].stdout.splitlines()[-1]
+        assert {r["sandbox"] for r in csv.DictReader(result["csv"].open())} == {"graded WITHOUT a sandbox (--trusted)"}
     finally:
         _cleanup()
 
@@ -284,7 +288,7 @@ time.sleep(10 ** 6)"""
     for backend in ["process"] + (["bwrap"] if BWRAP else []):
         t0 = time.monotonic()
         try:
-            got = grade(stu, src, timeout=8, backend=backend)
+            got = grade(stu, src, timeout=8, backend=backend, trusted=backend == "process")
             elapsed = time.monotonic() - t0
         finally:
             _cleanup_left = _marked_processes()

@@ -36,7 +36,7 @@ def test_pinned_environ_adds_the_pins_and_leaves_the_base_alone():
 def test_the_test_session_runs_pinned():
     # tests/conftest.py pins before torch starts, so the pinned numbers of the tests are the notebooks' numbers
     assert kernels.is_pinned()
-    import vpr_nb.models  # noqa: F401 - importing the models applies the in-process part of the pins
+    # conftest.py also applies the in-process part of the pins, as every front door does (vpr_nb.kernels)
 
     assert not torch.backends.mkldnn.enabled
     if platform.machine() == "x86_64" and torch.backends.cpu.get_cpu_capability() != "DEFAULT":
@@ -62,7 +62,9 @@ def test_cli_errors_are_one_line_and_exit_2(capsys):
     assert capsys.readouterr().err.startswith("error: --run needs a command")
     assert kernels.main(["--run", "/no/such/program"]) == 2
     assert capsys.readouterr().err.startswith("error: cannot run '/no/such/program'")
-    assert kernels.main(["--steps", "0"]) == 2
+    from vpr_nb import fingerprint
+
+    assert fingerprint.main(["--steps", "0"]) == 2
     assert capsys.readouterr().err.startswith("error: --steps must be at least 1")
     assert kernels.main(["--env"]) == 0
     assert capsys.readouterr().out.splitlines() == [f"{k}={v}" for k, v in kernels.PINNED.items()]
@@ -84,7 +86,7 @@ def test_the_pinned_fingerprint_is_the_recorded_one():
     from vpr_nb.pretrain import card
 
     assert card()["sha256"] == FINGERPRINT_BACKBONE, "the course backbone changed: re-record PINNED_FINGERPRINT"
-    code = "from vpr_nb.kernels import fingerprint; import json; print(json.dumps(fingerprint()))"
+    code = "from vpr_nb.fingerprint import fingerprint; import json; print(json.dumps(fingerprint()))"
     import json
 
     got = json.loads(_python(code, kernels.pinned_environ()).strip().splitlines()[-1])

@@ -210,10 +210,10 @@ def test_environment_header_records_the_cpu_kernels(monkeypatch):
     assert head["cpu"].endswith("; pinned kernels (AVX2, MKL COMPATIBLE)")
     assert head["cpu"].split(";")[0].strip()          # a processor name, never empty
     monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if k not in kernels.PINNED})
-    assert report.cpu_description().endswith(f"; native kernels (torch {torch.backends.cpu.get_cpu_capability()})")
+    assert kernels.cpu_description().endswith(f"; native kernels (torch {torch.backends.cpu.get_cpu_capability()})")
 
     def no_cpuinfo(*args, **kwargs):
         raise OSError("no /proc here")
 
     monkeypatch.setattr("builtins.open", no_cpuinfo)   # macOS / Windows: platform's name instead
-    assert report.cpu_description().split(";")[0].strip()
+    assert kernels.cpu_description().split(";")[0].strip()

@@ -144,7 +144,7 @@ def test_stale_when_the_backbone_file_changes(tmp_path, monkeypatch):
     state = torch.load(pretrain.CHECKPOINT, weights_only=True)
     state[next(iter(state))].view(-1)[0] += 1
     torch.save(state, tmp_path / "retrained.pt")
-    monkeypatch.setattr(pretrain, "CHECKPOINT", tmp_path / "retrained.pt")
+    monkeypatch.setattr(results, "CHECKPOINT", tmp_path / "retrained.pt")
     with pytest.raises(ValueError, match="other course-backbone weights"):
         results.load("99_demo", WORLD_CFG, results_dir=tmp_path)
 
@@ -171,7 +171,8 @@ def test_committed_results_match_todays_worlds():
 def test_committed_results_are_refused_from_a_dirty_tree_unless_allowed(tmp_path, monkeypatch):
     """A reproduce run writes notebooks/results/ only from a clean commit; a trial run may opt out."""
     from vpr_nb import report
-    monkeypatch.setattr(report, "uncommitted_changes", lambda: ["vpr_nb/losses.py"])
+    for module in (report, results):      # the stamp (report) and the refusal (results) both ask git
+        monkeypatch.setattr(module, "uncommitted_changes", lambda: ["vpr_nb/losses.py"])
     monkeypatch.setenv("VPR_NB_RESULTS_DIR", str(tmp_path))
     monkeypatch.delenv(results.ALLOW_DIRTY_ENV, raising=False)
     with pytest.raises(ValueError, match=r"uncommitted changes \(vpr_nb/losses.py\).*VPR_NB_ALLOW_DIRTY=1"):
@@ -179,7 +180,8 @@ def test_committed_results_are_refused_from_a_dirty_tree_unless_allowed(tmp_path
     monkeypatch.setenv(results.ALLOW_DIRTY_ENV, "1")
     path = results.save("99_demo", {"epochs": 1}, {"x": 1})
     assert "with uncommitted changes" in json.loads(path.read_text())["stamp"]["git commit"]
-    monkeypatch.setattr(report, "uncommitted_changes", lambda: [])
+    for module in (report, results):
+        monkeypatch.setattr(module, "uncommitted_changes", lambda: [])
     monkeypatch.delenv(results.ALLOW_DIRTY_ENV)
     assert "uncommitted" not in json.loads(results.save("99_demo", {"epochs": 1}, {"x": 1}).read_text())["stamp"]["git commit"]
 

@@ -1,8 +1,12 @@
 """The reproduction command: typed config, presets (model, step count), validation before data, val/test
-separation, per-format Recall@N, outputs, resume, and DDP (2 CPU processes, gloo) vs 1 process."""
+separation, per-format Recall@N, outputs, resume (and extending a run), --help, and DDP (2 CPU processes, gloo)
+vs 1 process."""
+import csv
+import importlib
 import json
 import math
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -16,6 +20,7 @@ from torch import nn
 
 from vpr_nb import config as C
 from vpr_nb import experiment as E
+from vpr_nb.cli import plain_text
 from vpr_nb.run_folder import FolderLock
 from vpr_nb.train import PRESETS, main, resolve_config
 
@@ -259,7 +264,7 @@ def test_salad_gsv_end_to_end_on_fixtures(tmp_path, dinov2):
     assert len(hist["epochs"]) == 1 and np.isfinite(hist["epochs"][0]["loss"])
 
 
-def test_salad_cliquemining_end_to_end_and_unreadable_images(tmp_path, dinov2):
+def test_salad_cliquemining_end_to_end_and_unreadable_images(tmp_path, dinov2, capsys):
     if os.environ.get("VPR_NB_DINOV2_HUB"):
         pytest.skip("the toy sizes below are for the stand-in")
     out = tmp_path / "cm"
@@ -269,8 +274,10 @@ def test_salad_cliquemining_end_to_end_and_unreadable_images(tmp_path, dinov2):
             "--set", 'model.aggregator_kwargs={"num_clusters": 2, "cluster_dim": 4, "token_dim": 4, "hidden_dim": 8}',
             "--set", "train.epochs=1", "--set", "source.clique_places=1", "--set", "source.clique_batches_per_epoch=1",
             "--set", "data.image_check_workers=1", "--no-progress"]
-    with pytest.warns(UserWarning, match="MSLS training cities are absent"):
-        assert main(["--preset", "salad-cliquemining-msls", "--out", str(out)] + sets) == 0
+    assert main(["--preset", "salad-cliquemining-msls", "--out", str(out)] + sets) == 0
+    warned = [line for line in capsys.readouterr().err.splitlines() if "MSLS training cities are absent" in line]
+    assert len(warned) == 1 and warned[0].startswith("warning: ") and ".py" not in warned[0]   # the CLI's one line
+    assert "MSLS training cities are absent" in (out / "train.log").read_text()
     res = json.loads((out / "results.json").read_text())
     assert res["steps_per_epoch"] == max(math.ceil(4 / 2), 1) and res["unreadable_images"] == 1
     assert res["test_data"].startswith("msls:val") and res["val"].startswith("pitts:val")
@@ -368,7 +375,7 @@ def test_evaluate_a_run_and_another_dataset(tmp_path):
 # ------------------------------------------------------------------------------------------ samplers and resume
 @pytest.mark.parametrize("sampler", ["random", "clique"])
 def test_place_samplers_train(sampler):
-    from vpr_nb import seed_everything
+    from vpr_nb.seeding import seed_everything
     from vpr_nb.models import build_model
     from vpr_nb.synthetic import make_dataset
     from vpr_nb.training import TrainConfig, train
@@ -391,7 +398,7 @@ def test_place_samplers_train(sampler):
 
 @pytest.mark.slow
 def test_cliquemining_run_resumes_exactly(tmp_path):
-    from vpr_nb import seed_everything
+    from vpr_nb.seeding import seed_everything
     from vpr_nb.models import build_model
     from vpr_nb.synthetic import make_dataset
     from vpr_nb.training import TrainConfig, train
@@ -412,6 +419,77 @@ def test_cliquemining_run_resumes_exactly(tmp_path):
     resumed = fresh()                                     # a new process: fresh model and sampler
     train(resumed, E.build_source(cfg, ds.train)[0], ds.val, tc, checkpoint_dir=tmp_path, progress=False)
     assert all(torch.equal(a, b) for a, b in zip(full.state_dict().values(), resumed.state_dict().values()))
+
+
+# ------------------------------------------------------------------------------------------ resume with changes
+def _small(epochs, *sets):
+    args = [a if a != "train.epochs=2" else f"train.epochs={epochs}" for a in SMALL]
+    return ["--preset", "synthetic-city-triplet"] + args + [x for s in sets for x in ("--set", s)]
+
+
+def _without_seconds(rows):
+    return [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
+
+
+def test_resume_with_more_epochs_ends_as_a_run_started_with_them(tmp_path):
+    """--resume --set train.epochs=6 on a finished 4-epoch run: the weights, history, logs and results of a
+    straight 6-epoch run (StepLR counts epochs from the start, so nothing depends on the budget)."""
+    ext, straight = tmp_path / "extended", tmp_path / "straight"
+    assert main(_small(4) + ["--out", str(ext)]) == 0
+    assert main(["--resume", "--out", str(ext), "--set", "train.epochs=6", "--no-progress"]) == 0
+    assert main(_small(6) + ["--out", str(straight)]) == 0
+    for name in ("last.pt", "best.pt"):                                # bit-identical state dicts
+        a, b = (torch.load(d / "checkpoints" / name, weights_only=True) for d in (ext, straight))
+        assert a["epoch"] == b["epoch"] and a["model"].keys() == b["model"].keys(), name
+        assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"]), name
+    h_ext, h_straight = (json.loads((d / "history.json").read_text()) for d in (ext, straight))
+    assert len(h_ext["epochs"]) == 6 and _without_seconds(h_ext["epochs"]) == _without_seconds(h_straight["epochs"])
+    assert {k: v for k, v in h_ext.items() if k != "epochs"} == {k: v for k, v in h_straight.items() if k != "epochs"}
+    assert json.loads((ext / "results.json").read_text()) == json.loads((straight / "results.json").read_text())
+    assert json.loads((ext / "config.json").read_text()) == json.loads((straight / "config.json").read_text())
+    steps = [_without_seconds(csv.DictReader(open(d / "steps.csv"))) for d in (ext, straight)]
+    assert len(steps[0]) == 30 and steps[0] == steps[1]
+    log = (ext / "train.log").read_text()
+    assert "changed: train.epochs: 4 → 6" in log and "4 of 6 epochs trained" in log and "epoch 6/6:" in log
+
+
+def test_resume_with_another_config_names_each_field_and_the_new_run_command(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(_small(1, "train.lr=0.001") + ["--out", str(out)]) == 0
+    saved = (out / "config.json").read_text()
+    capsys.readouterr()
+    assert main(["--resume", "--out", str(out), "--set", "train.lr=0.01", "--set", "data.seed=3",
+                 "--set", "train.epochs=2"]) == 2
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --resume: ") and "Traceback" not in err, err
+    assert "(data.seed: 0 → 3, train.lr: 0.001 → 0.01)" in lines[0]      # every changed field, not the epochs
+    assert "may change only train.epochs and train.patience" in lines[0]
+    command = shlex.split(lines[0].split("start a new run: ", 1)[1])
+    assert command[:3] == ["python", "-m", "vpr_nb.train"] and command[-2:] == ["--out", "NEW_DIR"]
+    assert main(command[3:-1] + [str(tmp_path / "new"), "--print-config"]) == 0     # the command as printed
+    want = C.with_overrides(C.RunConfig.from_dict(json.loads(saved)),
+                            ["train.lr=0.01", "data.seed=3", "train.epochs=2"])
+    assert json.loads(capsys.readouterr().out) == want.to_dict()
+    assert (out / "config.json").read_text() == saved and not (tmp_path / "new").exists()   # nothing touched
+
+
+# ------------------------------------------------------------------------------------------ --help
+@pytest.mark.parametrize("script, module", [("vpr-train", "vpr_nb.train"), ("vpr-evaluate", "vpr_nb.evaluate"),
+                                            ("vpr-pretrain", "vpr_nb.pretrain")])
+def test_help_names_the_script_reads_as_plain_text_and_gives_examples(script, module, monkeypatch, capsys):
+    script_main = importlib.import_module(module).main
+    for argv0, prog in ((f"/venv/bin/{script}", script), ("/usr/lib/python3/bin/pytest", f"python -m {module}")):
+        monkeypatch.setattr(sys, "argv", [argv0, "--help"])
+        with pytest.raises(SystemExit) as done:
+            script_main(["--help"])
+        text = capsys.readouterr().out
+        assert done.value.code == 0 and text.startswith(f"usage: {prog} "), text[:200]
+        assert "``" not in text and not any(role in text for role in (":func:", ":class:", ":mod:", ":meth:")), text
+        examples = text.split("examples:\n", 1)[1].splitlines()
+        assert sum(line.startswith(f"  {prog}") for line in examples) >= 2, text
+    assert plain_text("``a --b`` :func:`vpr_nb.x.f`, :class:`~vpr_nb.run_folder.OutputFolder`, :mod:`t <vpr_nb.t>`, "
+                      "**bold** `x`::") == "a --b vpr_nb.x.f, OutputFolder, t, bold x:"
 
 
 # ------------------------------------------------------------------------------------------ synthetic runs, DDP
@@ -441,7 +519,7 @@ def test_ddp_two_processes_match_one(tmp_path):
 
 def test_real_format_split_trains_and_evaluates():
     """A gmberton-format fixture goes through the same loop as the synthetic world (images read lazily)."""
-    from vpr_nb import seed_everything
+    from vpr_nb.seeding import seed_everything
     from vpr_nb.datasets import ImageArray, TrainingSplit, load
     from vpr_nb.evaluation import compute_descriptors, evaluate_model
     from vpr_nb.models import build_model

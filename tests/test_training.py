@@ -1,16 +1,20 @@
-"""The training loop: determinism, resume-after-interruption, checkpoints, bad input."""
+"""The training loop: determinism, resume-after-interruption (and with more epochs, another patience), Ctrl-C,
+checkpoints, bad input."""
+from dataclasses import asdict
+
 import numpy as np
 import pytest
 import torch
 
 from vpr_nb import losses as L
-from vpr_nb import seed_everything
+from vpr_nb.seeding import seed_everything
 from vpr_nb.samplers import random_place_batches
 from vpr_nb.evaluation import images_to_tensor
 from vpr_nb.models import build_model
 from vpr_nb.synthetic import make_dataset
-from vpr_nb.training import (History, PlaceBatchSource, TrainConfig, TripletSource, load_checkpoint,
-                             save_checkpoint, train)
+import vpr_nb.training.checkpoints as CK
+from vpr_nb.training import (History, PlaceBatchSource, TrainConfig, TrainingInterrupted, TripletSource,
+                             check_resume, load_checkpoint, save_checkpoint, train)
 
 WORLD = dict(blocks=(5, 2), image_size=(16, 24), queries_per_place=1.0)
 
@@ -59,11 +63,85 @@ def test_interrupted_run_resumes_to_the_same_weights(world, tmp_path):
     assert hist.recalls(1) == hist_full.recalls(1)
 
 
+def _source(world):
+    return TripletSource(world.train, L.TripletLoss(), batch_size=8, num_negatives=3, num_candidates=50,
+                         max_heading_diff=45)
+
+
+def test_resume_refuses_a_different_config_naming_each_field(world, tmp_path, monkeypatch):
+    _run(world, tmp_path, stop_after=2)                              # last.pt after epoch 2 of 3
+    other = TrainConfig(epochs=3, lr=0.01, step_size=2)
+    with pytest.raises(ValueError, match=r"different TrainConfig \(lr: 0.05 → 0.01, step_size: 1 → 2\); a resumed "
+                                         r"run may change only epochs and patience"):
+        train(_model(), _source(world), world.val, other, checkpoint_dir=tmp_path, progress=False)
+    with pytest.raises(ValueError, match="holds 2 trained epochs, more than epochs=1: resume with epochs >= 2"):
+        train(_model(), _source(world), world.val, TrainConfig(epochs=1, lr=0.05, step_size=1),
+              checkpoint_dir=tmp_path, progress=False)
+    monkeypatch.setattr(CK, "EPOCH_SCHEDULERS", frozenset({"step"}))   # a schedule spread over the epochs
+    with pytest.raises(ValueError, match="'step' scheduler spreads its learning rates over the epochs"):
+        train(_model(), _source(world), world.val, TrainConfig(epochs=4, lr=0.05, step_size=1),
+              checkpoint_dir=tmp_path, progress=False)
+    assert load_checkpoint(tmp_path / "last.pt")["epoch"] == 1       # every refusal left last.pt as it was
+
+
 @pytest.mark.slow
-def test_resume_refuses_a_different_config(world, tmp_path):
-    _run(world, tmp_path, stop_after=1)
-    with pytest.raises(ValueError, match="different TrainConfig"):
-        _run(world, tmp_path, epochs=4)
+def test_resume_with_more_epochs_ends_as_a_run_started_with_them(world, tmp_path):
+    """Neither StepLR nor the loop depends on the number of epochs: 2 epochs continued to 3 = 3 epochs."""
+    _, short = _run(world, tmp_path, epochs=2)
+    extended, hist = _run(world, tmp_path, epochs=3)                 # continues the finished 2-epoch run
+    full, hist_full = _run(world, epochs=3)
+    assert len(short.epochs) == 2 and [e["epoch"] for e in hist.epochs] == [0, 1, 2]
+    assert _same_weights(full, extended)                             # both end on the best epoch's weights
+    assert hist.losses == hist_full.losses and hist.recalls(1) == hist_full.recalls(1)
+    assert hist.best_epoch == hist_full.best_epoch
+    last = load_checkpoint(tmp_path / "last.pt")
+    assert last["config"]["epochs"] == 3 and last["epoch"] == 2
+
+
+def test_resume_with_another_patience_replays_the_selection():
+    h = History()
+    for e, r in enumerate([0.5, 0.4, 0.3]):                           # best at epoch 0, then 1 and 2 epochs since
+        h.add_epoch(e, 1.0, 1.2, 0.9, 0.05, 1.0, {1: r, 5: 0.9}, select_n=1)
+    h.stopped_early = True                                           # stopped by patience 2 after epoch 3
+    ck = {"config": asdict(TrainConfig(epochs=10, patience=2)), "epoch": 2, "history": h.to_dict()}
+    assert check_resume(ck, TrainConfig(epochs=10, patience=3), "last.pt").stopped_early is False   # goes on
+    assert check_resume(ck, TrainConfig(epochs=10, patience=None), "last.pt").stopped_early is False
+    assert check_resume(ck, TrainConfig(epochs=12, patience=2), "last.pt").stopped_early is True
+    with pytest.raises(ValueError, match=r"with patience=1 the run would have stopped after epoch 2, but it has "
+                                         r"trained 3 epochs: resume with patience >= 2"):
+        check_resume(ck, TrainConfig(epochs=10, patience=1), "last.pt")
+
+
+def _interrupt_at(src, epoch: int, step: int):
+    """Make ``src`` raise KeyboardInterrupt (Ctrl-C) in epoch ``epoch`` (0-based) after ``step`` of its steps."""
+    inner, calls = src.steps, []
+
+    def steps(model, rng, shard=(0, 1), device=None):
+        calls.append(1)
+        for i, loss in enumerate(inner(model, rng, shard=shard, device=device)):
+            if len(calls) - 1 == epoch and i == step:
+                raise KeyboardInterrupt
+            yield loss
+    src.steps = steps
+    return src
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_where_and_a_resume_restarts_the_epoch(world, tmp_path):
+    src = _interrupt_at(_source(world), epoch=1, step=2)
+    with pytest.raises(TrainingInterrupted) as stopped:
+        train(_model(), src, world.val, TrainConfig(epochs=3, lr=0.05, step_size=1), checkpoint_dir=tmp_path,
+              progress=False)
+    e = stopped.value
+    assert isinstance(e, KeyboardInterrupt) and str(e) == "at epoch 2, step 2"
+    assert (e.epoch, e.steps, e.phase, e.saved_epoch, e.saved()) == (1, 2, "training", 0, "last saved: epoch 1")
+    assert load_checkpoint(tmp_path / "last.pt")["epoch"] == 0       # the last complete epoch, intact
+    resumed, hist = _run(world, tmp_path)                            # epoch 2 runs again from its start
+    full, hist_full = _run(world)
+    assert _same_weights(full, resumed) and hist.losses == hist_full.losses
+    with pytest.raises(TrainingInterrupted, match="at epoch 1, step 0") as early:
+        train(_model(), _interrupt_at(_source(world), 0, 0), world.val, TrainConfig(epochs=1), progress=False)
+    assert early.value.saved_epoch is None and early.value.saved() == "nothing saved yet"
 
 
 @pytest.mark.slow
@@ -497,7 +575,8 @@ def test_history_add_epoch_tracks_the_best():
 def test_float16_scaler_state_is_checkpointed_and_resumed(world, tmp_path, monkeypatch):
     """GPUs without bfloat16 train in float16 with a GradScaler: its state goes into last.pt and comes back."""
     import vpr_nb.training as T
-    monkeypatch.setattr(T, "amp_dtype", lambda device: torch.float16)
+    import vpr_nb.training.device as D          # setup_device looks amp_dtype up in its own module
+    monkeypatch.setattr(D, "amp_dtype", lambda device: torch.float16)
     cfg = TrainConfig(epochs=2, lr=0.05, amp=True, device="cpu")
     src = TripletSource(world.train, L.TripletLoss(), batch_size=8, num_negatives=3, num_candidates=50)
     train(_model(), src, world.val, cfg, checkpoint_dir=tmp_path, progress=False, stop_after=1)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import sys
 
+from . import __version__
+
 # (console script or None, module, what it does); the console scripts are declared in pyproject.toml
 COMMANDS = (
     ("vpr-train", "vpr_nb.train", "train a preset (synthetic world or a real dataset) into --out, resumable"),
@@ -11,6 +13,8 @@ COMMANDS = (
     (None, "vpr_nb.report", "execute the notebook sequence and write a results report (make reproduce)"),
     (None, "vpr_nb.assignments", "student versions of the notebooks; grade submissions"),
     (None, "vpr_nb.authoring", "re-execute a notebook in place for committing (make notebook)"),
+    (None, "vpr_nb.kernels", "the CPU kernels this process gets; --run CMD runs a command with the pinned ones"),
+    (None, "vpr_nb.fingerprint", "hashes of what a few course steps compute here, to compare two machines"),
 )
 
 
@@ -20,7 +24,6 @@ def main(argv=None) -> int:
         print(f"error: python -m vpr_nb takes no arguments (got {' '.join(args)}); run it alone for the list "
               f"of commands", file=sys.stderr)
         return 2
-    from . import __version__
     print(f"vpr_nb {__version__}: the commands of the vpr-notebooks course (each has --help)")
     width = max(len(f"python -m {module}") for _, module, _ in COMMANDS)
     for script, module, what in COMMANDS:

@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from .kernels import pin_this_process
+
 WIDGET_VIEW = "application/vnd.jupyter.widget-view+json"
 
 
@@ -44,8 +46,6 @@ def execute_in_place(path, timeout: int = 600) -> float:
     import nbformat
     from jupytext.cli import jupytext as jupytext_cli
     from nbclient import NotebookClient
-
-    from .kernels import pin_this_process
 
     path = Path(path)
     if path.suffix != ".ipynb" or not path.is_file():

@@ -366,7 +366,7 @@ def _validate_fields(cfg: RunConfig) -> None:
 def _validate_training_data(d: DataConfig, s: SourceConfig) -> None:
     """What training on ``d`` with ``s`` needs: the folders, val != test, queries or places."""
     need_root = ValueError(f"preset needs the dataset location: --set data.root=/path/to/{d.format} "
-                           "(see README, 'Real datasets')")
+                           "(see docs/reproduction.md, 'Real datasets')")
     if d.format != SYNTHETIC and not d.root:
         raise need_root
     specs = (split_spec(d, "train"), *check_val_test(d))

@@ -10,18 +10,27 @@ e.g. MSLS-val for an MSLS run, so a folder holding only cph and sf suffices). ``
 ``retrieval_grid.png``, each written atomically, into ``--out``, which is locked while it is written (the
 lock of :mod:`vpr_nb.run_folder`: a folder a ``train`` or ``evaluate`` run is writing is refused). The
 config, the device and the checkpoint (readable, and weights of the configured model) are checked before
-``--out`` is touched; errors are one ``error: ...`` line and exit status 2. The run logic is
+``--out`` is touched; errors are one ``error: ...`` line and exit status 2, warnings one ``warning: ...`` line
+and Ctrl-C one line and exit status 130 (:mod:`vpr_nb.cli`). The run logic is
 :func:`vpr_nb.experiment.evaluate_run`; this module only parses the command line.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
+from . import cli
 from .config import RunConfig, resolve, split_override, with_overrides
-from .experiment import CLI_ERRORS, evaluate_run, read_run_config
+from .experiment import evaluate_run, read_run_config
+from .kernels import apply_in_process
+
+EXAMPLES = (("evaluate the best weights of a training run on its test data",
+             "--run runs/city --out runs/city/eval"),
+            ("the same run on another dataset, with each query's top retrievals in predictions.csv",
+             "--run runs/city --set data.format=gmberton --set data.root=/data/pitts30k --out runs/city/pitts "
+             "--predictions"),
+            ("a checkpoint of a preset's model", "--preset synthetic-city-triplet --checkpoint best.pt --out ev"))
 
 
 def run_config(run_dir: Path, overrides=()) -> RunConfig:
@@ -39,27 +48,34 @@ def run_config(run_dir: Path, overrides=()) -> RunConfig:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m vpr_nb.evaluate", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", type=Path, help="output folder of python -m vpr_nb.train")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    ap = cli.parser("vpr-evaluate", "vpr_nb.evaluate", __doc__, EXAMPLES)
+    ap.add_argument("--run", type=Path, help="output folder of a training run (vpr-train)")
     ap.add_argument("--preset", help="preset name (with --checkpoint, instead of --run)")
     ap.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoints/best.pt)")
-    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="override a config value (repeatable), e.g. --set data.root=/data/pitts30k")
     ap.add_argument("--out", type=Path, required=True, help="where recalls.json (and the figure) go")
     ap.add_argument("--predictions", action="store_true", help="also write predictions.csv")
     ap.add_argument("--device", default="auto")
     args = ap.parse_args(argv)
-    try:
-        if args.run is not None:
-            cfg = run_config(args.run, args.overrides)
-            checkpoint = args.checkpoint or args.run / "checkpoints" / "best.pt"
-        elif args.preset and args.checkpoint:
-            cfg, checkpoint = resolve(args.preset, args.overrides), args.checkpoint
-        else:
-            ap.error("give --run DIR, or --preset NAME with --checkpoint FILE")
-        result = evaluate_run(cfg, checkpoint, args.out, predictions=args.predictions, device=args.device)
-    except CLI_ERRORS as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if args.run is None and not (args.preset and args.checkpoint):
+        ap.error("give --run DIR, or --preset NAME with --checkpoint FILE")
+
+    def interrupted(exc):
+        return (f"interrupted; {args.out / 'recalls.json'} was not written (it is written last); run the command "
+                f"again: {cli.command_line(ap.prog, argv)}")
+    return cli.run(lambda: _main(args), interrupted)
+
+
+def _main(args) -> int:
+    if args.run is not None:
+        cfg = run_config(args.run, args.overrides)
+        checkpoint = args.checkpoint or args.run / "checkpoints" / "best.pt"
+    else:
+        cfg, checkpoint = resolve(args.preset, args.overrides), args.checkpoint
+    apply_in_process()  # in a pinned process, the convolutions that give the same bits on every CPU
+    result = evaluate_run(cfg, checkpoint, args.out, predictions=args.predictions, device=args.device)
     print(json.dumps(result["recall"], indent=1))
     return 0
 

@@ -25,28 +25,22 @@ import numpy as np
 import torch
 from ._checks import as_float_matrix, check_int
 from ._threads import single_threaded_call
+from .image_tensors import as_image_array, images_to_tensor
 from .split import Split, check_split, positives_within
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-def normalize_imagenet(x: torch.Tensor) -> torch.Tensor:
-    """``(x - mean) / std`` per channel with the ImageNet statistics (:data:`IMAGENET_MEAN`,
-    :data:`IMAGENET_STD`), for float images in [0, 1] with channels at dim -3 (``(3, H, W)`` or
-    ``(N, 3, H, W)``). The one normalisation path of the package: :func:`images_to_tensor` and
-    :func:`vpr_nb.datasets.read_image` both end here."""
-    if not isinstance(x, torch.Tensor) or not x.is_floating_point() or x.ndim < 3 or x.shape[-3] != 3:
-        got = f"{x.dtype} of shape {tuple(x.shape)}" if isinstance(x, torch.Tensor) else type(x).__name__
-        raise ValueError(f"normalize_imagenet needs a float tensor with 3 channels at dim -3, got {got}; "
-                         f"scale uint8 images to [0, 1] first (images_to_tensor does both)")
-    return (x - torch.tensor(IMAGENET_MEAN).view(3, 1, 1)) / torch.tensor(IMAGENET_STD).view(3, 1, 1)
-
 
 def _is_half(x) -> bool:
     """Whether ``x`` holds half-precision floats (torch bfloat16 / float16, numpy float16)."""
     dtype = getattr(x, "dtype", None)
     return dtype in (torch.bfloat16, torch.float16) or dtype == np.float16
+
+
+def _half_names(**inputs) -> str:
+    """``"bfloat16 descriptors (db_desc, q_desc)"``: the precision of the half-precision inputs, by name."""
+    by: dict[str, list[str]] = {}
+    for name, x in inputs.items():
+        if _is_half(x):
+            by.setdefault(str(x.dtype).removeprefix("torch."), []).append(name)
+    return " and ".join(f"{dtype} descriptors ({', '.join(names)})" for dtype, names in by.items())
 
 
 @single_threaded_call   # faiss's BLAS and OpenMP loops on one thread (vpr_nb._threads)
@@ -58,8 +52,9 @@ def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
     distances** ``||q - d||^2 = 2 - 2 <q, d>`` (exact for unit vectors), sorted ascending, so that the
     first column is the best match. Ranking is identical to ``faiss.IndexFlatL2`` on unit vectors.
 
-    Half-precision descriptors (bfloat16 from autocast, float16) are searched in float32: their rows
-    are unit up to their rounding (1e-2) and are re-normalised after the conversion.
+    Half-precision descriptors (bfloat16 from autocast, float16) are searched in float32, with a
+    UserWarning naming their precision: their rows are unit up to their rounding (1e-2) and are
+    re-normalised after the conversion. Float32 descriptors are searched as they are.
 
     Returns ``(distances, indices)`` as float32 / int64 arrays of shape (num_queries, k).
     """
@@ -76,6 +71,10 @@ def retrieve(db_desc, q_desc, k: int) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("descriptors must be L2-normalised (unit rows); "
                          "apply torch.nn.functional.normalize(x, dim=1) or faiss.normalize_L2 first")
     if half:
+        warnings.warn(f"retrieve got {_half_names(db_desc=db_desc, q_desc=q_desc)}; upcast to float32 "
+                      f"for the exact search and re-normalised (their rows are unit only to ~1e-2, so near ties may "
+                      f"rank differently than in float32): pass float32 descriptors (e.g. x.float()) to search "
+                      f"them as they are", stacklevel=3)
         db, q = db / norms[:, None], q / q_norms[:, None]
     index = faiss.IndexFlatIP(db.shape[1])
     index.add(db)
@@ -161,30 +160,6 @@ def counted_queries(positives: Sequence[Iterable[int]], no_positive: str = "excl
     if no_positive not in ("exclude", "all"):
         raise ValueError(f"no_positive must be 'exclude' or 'all', got {no_positive!r}")
     return len(positives) if no_positive == "all" else sum(1 for p in positives if len(p) > 0)
-
-
-def images_to_tensor(images) -> torch.Tensor:
-    """uint8 images (N, H, W, 3) -> float tensor (N, 3, H, W), scaled to [0, 1] then ImageNet-normalised."""
-    if isinstance(images, torch.Tensor):
-        images = images.numpy()
-    arr = np.asarray(images)
-    if arr.ndim != 4 or arr.shape[-1] != 3:
-        raise ValueError(f"images must be (N, H, W, 3) uint8, got shape {arr.shape}")
-    if arr.dtype != np.uint8:
-        raise ValueError(f"images must be uint8 in [0, 255], got dtype {arr.dtype}")
-    x = torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2).float().div_(255.0)
-    return normalize_imagenet(x)
-
-
-def as_image_array(images):
-    """``images`` as an indexable ``(N, H, W, 3)`` uint8 array: numpy arrays (and lists) as numpy,
-    lazy on-disk arrays (:class:`vpr_nb.datasets.ImageArray`, anything with ``shape``, ``dtype``
-    and ``__getitem__``) as they are, so that only the indexed images are read."""
-    if isinstance(images, np.ndarray):
-        return images
-    if hasattr(images, "shape") and hasattr(images, "__getitem__") and hasattr(images, "dtype"):
-        return images
-    return np.asarray(images)
 
 
 @torch.no_grad()

@@ -14,8 +14,12 @@
 - :func:`train_run` / :func:`evaluate_run` take the ``--out`` folder (:class:`vpr_nb.run_folder.OutputFolder`:
   an OS lock held for the whole run, refused when another run holds it or it holds another run) only
   after everything that can be checked without data (config, device, model, checkpoint) was, write every
-  file atomically (:mod:`vpr_nb.atomic`), log every step and epoch (:class:`vpr_nb.run_log.RunLog`) and
-  print a short summary (:func:`config_summary`); :func:`read_run_config` reads a run's ``config.json``.
+  file atomically (:mod:`vpr_nb.atomic`), log every step and epoch (:class:`vpr_nb.run_log.RunLog`: CSVs,
+  TensorBoard and the plain-text ``train.log``, its lines from :mod:`vpr_nb.run_summary`) and print a short
+  summary (:func:`config_summary`); :func:`read_run_config` reads a run's ``config.json``;
+  :func:`check_resume_config` says what a resumed run may change (more epochs, another patience) and names
+  every other change with the command that starts a new run. Ctrl-C ends a run with
+  :class:`vpr_nb.training.TrainingInterrupted` (where it stopped), and ``train.log`` says how to resume.
 
 Every Recall@N takes its positives from the split (``split.positives()``, per city where the split has
 cities) under the split's convention unless ``eval.recall`` says otherwise (:func:`convention`).
@@ -28,26 +32,30 @@ import io
 import json
 import math
 import os
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from . import seed_everything
 from .atomic import atomic_write, atomic_write_text
-from .config import SECTIONS, RunConfig, SourceConfig, build_loss, check_device, split_spec, validate
+from .config import RunConfig, SourceConfig, build_loss, check_device, split_spec, validate
 from .datasets import (GeoSplit, ImageArray, SplitSpec, TrainingSplit, dataset_format, drop_images,
                        find_unreadable_images)
 from .datasets.registry import SYNTHETIC
 from .evaluation import as_image_array, compute_descriptors, counted_queries, evaluate_model, recall_at_n, retrieve
 from .models import build_model, init_netvlad
+from .seeding import seed_everything
 from .samplers import CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBatches
 from .split import PlacePool, Split, check_split
 from .synthetic import make_config, make_dataset
-from .run_folder import OutputFolder
+from .errors import CLI_ERRORS
+from .run_folder import RESUMABLE, OutputFolder
 from .run_log import RunLog
-from .training import (PlaceBatchSource, TripletSource, distributed_rank, load_checkpoint, load_weights,
-                       resolve_device, train)
+from .run_summary import (RESUME_FIELDS, changes_text, check_resume_config, config_lines, config_summary,
+                          deviations, end_line, environment_line, interruption_line, new_run_command)
+from .training import (PlaceBatchSource, TrainingInterrupted, TripletSource, check_resume, distributed_rank,
+                       load_checkpoint, load_weights, resolve_device, train)
 
 
 # ================================================================================================ models
@@ -175,7 +183,7 @@ def load_split(cfg: RunConfig, which: str, *, image_size=None, report: list | No
         return getattr(synthetic if synthetic is not None else synthetic_world(d), spec.part)
     if not spec.root:
         raise ValueError(f"preset needs the dataset location: --set data.root=/path/to/{spec.format} "
-                         "(see README, 'Real datasets')")
+                         "(see docs/reproduction.md, 'Real datasets')")
     geo = check_images(load_geo(spec, d), d, report if report is not None else [])
     return TrainingSplit(geo, tuple(image_size) if image_size is not None else tuple(d.image_size))
 
@@ -235,9 +243,6 @@ def build_source(cfg: RunConfig, train_split: Split, extra_split: Split | None =
 
 
 # ================================================================================================ runs
-# what the commands print as one "error: ..." line (exit status 2): the library's refusals and the file
-# system's failures (a full disk, a folder without permission), each already naming the file and the fix
-CLI_ERRORS = (ValueError, FileNotFoundError, OSError)
 
 
 def read_run_config(path) -> RunConfig:
@@ -262,57 +267,6 @@ def read_run_config(path) -> RunConfig:
         raise ValueError(f"{path} is not a run config ({exc}): {fix}") from None
 
 
-def deviations(cfg: RunConfig) -> dict[str, dict]:
-    """``{section: {key: value}}`` of the fields of ``cfg`` that differ from the defaults (the preset's
-    deviations and the ``--set`` overrides)."""
-    defaults = RunConfig(cfg.preset, **{name: section() for name, section in SECTIONS.items()}).to_dict()
-    mine = cfg.to_dict()
-    return {s: {k: v for k, v in mine[s].items() if v != defaults[s][k]} for s in SECTIONS
-            if any(v != defaults[s][k] for k, v in mine[s].items())}
-
-
-def _fit(line: str, width: int = 118) -> str:
-    return line if len(line) <= width else line[:width - 3] + "..."
-
-
-def config_summary(cfg: RunConfig, model=None, per_epoch: int | None = None, out=None,
-                   convention_name: str | None = None, log_note: str | None = None) -> list[str]:
-    """The run at a glance (at most 15 lines, for stdout): preset and folder, data, model, batches, steps,
-    test, the deviations from the defaults (one line per section) and the logs; ``config.json`` holds
-    the full config."""
-    d, m, s, t = cfg.data, cfg.model, cfg.source, cfg.train
-    where = {w: split_spec(d, w).describe() for w in ("train", "val", "test")}
-    world = f" (world {d.preset}/{d.size}, seed {d.seed})" if d.format == SYNTHETIC else ""
-    lines = [f"{cfg.preset} -> {out}/ (full config in config.json)" if out is not None
-             else f"{cfg.preset} (no --out: nothing is written)",
-             _fit(f"  data:   train {where['train']}, val {where['val']}, test {where['test']}{world}")]
-    if model is not None:
-        params = sum(p.numel() for p in model.parameters())
-        trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
-        lines.append(f"  model:  {m.backbone} + {m.aggregator}, {model.out_dim}-D descriptors, {params:,} parameters "
-                     f"({trainable:,} trainable)")
-    else:
-        lines.append(f"  model:  {m.backbone} + {m.aggregator}")
-    if s.kind == "triplet":
-        lines.append(f"  batch:  triplets, {s.loss} loss, {s.batch_size} queries x {s.num_negatives} negatives per step")
-    else:
-        lines.append(f"  batch:  places ({s.sampler}), multi-similarity loss, {s.places_per_batch} places x "
-                     f"{s.images_per_place} images per step")
-    steps = f"{per_epoch} = {t.epochs * per_epoch} optimiser steps" if per_epoch is not None else "? steps"
-    lines.append(f"  steps:  {t.epochs} epochs x {steps}; {t.optimizer} lr {t.lr:g}, {t.scheduler} scheduler, "
-                 f"device {t.device}{', AMP' if t.amp else ''}, seed {t.seed}")
-    ns = ",".join(map(str, cfg.eval.ns or t.ns))
-    lines.append(f"  test:   Recall@{ns}" + (f", {convention_name} convention" if convention_name else ""))
-    changed = deviations(cfg)
-    if changed:
-        lines.append("  set (differs from the defaults):")
-        lines += [_fit(f"    {sec}: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in kv.items()))
-                  for sec, kv in changed.items()]
-    if out is not None:
-        lines.append("  logs:   history.json, steps.csv, epochs.csv, checkpoints/" + (f"; {log_note}" if log_note else ""))
-    return lines
-
-
 def _files(split: Split):
     """The real paths of a split's database and query images (None for images held in memory)."""
     if split.db_paths is None:
@@ -325,7 +279,8 @@ def _unreadable_text(bad: list) -> str:
 
 
 def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool = True,
-              folder: OutputFolder | None = None, tensorboard: bool = True, summary: bool | None = None) -> dict:
+              folder: OutputFolder | None = None, tensorboard: bool = True, summary: bool | None = None,
+              command: str = "python -m vpr_nb.train") -> dict:
     """Validate ``cfg`` and build its model (before anything is read or written), then load the data, train,
     select on the validation split, and test. ``out`` receives ``history.json``, ``results.json``,
     ``checkpoints/`` and ``unreadable_images.txt`` (images left out), each written atomically.
@@ -333,10 +288,13 @@ def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool 
     ``folder`` (the ``train`` command's, an :class:`~vpr_nb.run_folder.OutputFolder` of ``out``) makes it a
     run of the command: the folder is taken once the model is built (locked for the whole run, refused when
     it holds another run unless ``resume``), ``config.json`` (the full config), ``steps.csv`` /
-    ``epochs.csv`` (and TensorBoard events when installed, :class:`~vpr_nb.run_log.RunLog`) are written
-    too, and a run that fails before its first checkpoint removes what it wrote, so the folder can be used
-    again. ``summary`` (default: ``progress``) prints :func:`config_summary`. Under ``torch.distributed``
-    only rank 0 takes and writes the folder."""
+    ``epochs.csv`` / ``train.log`` (and TensorBoard events when installed, :class:`~vpr_nb.run_log.RunLog`)
+    are written too, and a run that fails before its first checkpoint removes what it wrote, so the folder
+    can be used again. ``resume`` with more ``train.epochs`` or another ``train.patience`` continues the run
+    as if it had been started with them, where that gives the same result (:func:`check_resume_config`,
+    checked before any data loads). ``summary`` (default: ``progress``) prints :func:`config_summary`;
+    ``command`` is how messages spell the command that resumes the run. Ctrl-C raises
+    :class:`~vpr_nb.training.TrainingInterrupted`. Under ``torch.distributed`` only rank 0 writes the folder."""
     validate(cfg)
     out = None if out is None else Path(out)
     rank = distributed_rank()[0]
@@ -344,13 +302,50 @@ def train_run(cfg: RunConfig, out=None, *, resume: bool = False, progress: bool 
     model = build_checked(cfg)             # the model is built and run before any data loads
     folder = folder if rank == 0 else None
     with folder if folder is not None else contextlib.nullcontext():
-        return _train_in(cfg, model, out, folder, resume=resume, progress=progress, rank=rank,
+        return _train_in(cfg, model, out, folder, resume=resume, progress=progress, rank=rank, command=command,
                          tensorboard=tensorboard, summary=progress if summary is None else summary)
 
 
 def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | None, *, resume: bool,
-              progress: bool, rank: int, tensorboard: bool, summary: bool) -> dict:
-    """:func:`train_run` once the model is built and ``folder`` (if any) is held."""
+              progress: bool, rank: int, tensorboard: bool, summary: bool, command: str) -> dict:
+    """:func:`train_run` once the model is built and ``folder`` (if any) is held: the run's ``train.log``
+    (warnings, errors, Ctrl-C) around :func:`_train_steps`."""
+    log = RunLog(out, tensorboard=tensorboard, epochs=cfg.train.epochs) if folder is not None else None
+    at = {"phase": "checking the saved run" if resume else "loading the data"}
+    with contextlib.ExitStack() as stack:
+        if log is not None:
+            stack.enter_context(log)
+            stack.enter_context(log.capture_warnings())
+        try:
+            return _train_steps(cfg, model, out, folder, log, at, resume=resume, progress=progress, rank=rank,
+                                summary=summary, command=command)
+        except KeyboardInterrupt as exc:
+            stopped = exc if isinstance(exc, TrainingInterrupted) else TrainingInterrupted(phase=at["phase"])
+            if log is not None:                  # what last.pt holds, when it stopped in an epoch
+                saved = f" ({stopped.saved()})" if stopped.epoch is not None else ""
+                log.text(f"{interruption_line(stopped, out, command)}{saved}")
+            if stopped is exc:
+                raise
+            raise stopped.with_traceback(exc.__traceback__) from None
+        except BaseException as exc:
+            if log is not None:
+                log.text(f"error: {exc}" if isinstance(exc, CLI_ERRORS) else f"failed: {type(exc).__name__}: {exc}")
+            raise
+
+
+def _train_steps(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | None, log: RunLog | None,
+                 at: dict, *, resume: bool, progress: bool, rank: int, summary: bool, command: str) -> dict:
+    """The run: check a resume, load the data, write the folder's config and logs, train, test."""
+    t0 = time.perf_counter()
+    changes = []
+    if resume and out is not None and (out / "config.json").is_file():   # before any data loads
+        changes = check_resume_config(read_run_config(out / "config.json"), cfg, out / "config.json", command)
+        if changes and (out / RESUMABLE).is_file():
+            try:
+                check_resume(load_checkpoint(out / RESUMABLE), cfg.train, out / RESUMABLE)
+            except ValueError as exc:
+                raise ValueError(f"--resume: {exc}: {new_run_command(command, cfg)}") from None
+    at["phase"] = "loading the data"
     world = synthetic_world(cfg.data) if cfg.data.format == SYNTHETIC else None
     bad: list = []
     train_split = load_split(cfg, "train", report=bad, synthetic=world)
@@ -371,7 +366,6 @@ def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | No
     total = cfg.train.epochs * per_epoch
     conv = convention(cfg, test_split)
     val_data, test_data = split_spec(cfg.data, "val").describe(), split_spec(cfg.data, "test").describe()
-    log = RunLog(out, tensorboard=tensorboard) if folder is not None else None
     if rank == 0 and summary:
         print("\n".join(config_summary(cfg, model, per_epoch, out, conv, log.note if log else None)), flush=True)
     writes = out is not None and rank == 0
@@ -379,14 +373,17 @@ def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | No
         folder.write_text("config.json", json.dumps(cfg.to_dict(), indent=1))
         for name in log.files() + ["checkpoints", "unreadable_images.txt"]:
             folder.record(name)
+        log.begin([f"start: {'resuming the run in' if resume else 'a new run in'} {out}"
+                   + (f", changed: {changes_text(changes)}" if changes else ""), *config_lines(cfg),
+                   environment_line(cfg.train.device),
+                   f"data: train {split_spec(cfg.data, 'train').describe()}, val {val_data}, test {test_data} "
+                   f"(Recall@N convention {conv}); {per_epoch} optimiser steps per epoch, {total} in all"])
     if writes and bad:
         atomic_write_text(out / "unreadable_images.txt", _unreadable_text(bad), errors="surrogateescape")
-    try:
-        history = train(model, source, val_split, cfg.train, checkpoint_dir=None if out is None else out / "checkpoints",
-                        resume=resume, progress=progress, log=log)
-    finally:
-        if log is not None:
-            log.close()
+    at["phase"] = "training"
+    history = train(model, source, val_split, cfg.train, checkpoint_dir=None if out is None else out / "checkpoints",
+                    resume=resume, progress=progress, log=log, steps_per_epoch=per_epoch)
+    at["phase"] = "testing"
     test = evaluate_model(model, test_split, ns=cfg.eval.ns or cfg.train.ns, batch_size=cfg.eval.batch_size,
                           no_positive=conv)
     results = {"preset": cfg.preset, "best_epoch": history.best_epoch, "val_best_recall": history.best_recall,
@@ -396,6 +393,8 @@ def _train_in(cfg: RunConfig, model, out: Path | None, folder: OutputFolder | No
     if writes:
         atomic_write_text(out / "history.json", json.dumps(history.to_dict(), indent=1))
         atomic_write_text(out / "results.json", json.dumps(results, indent=1))
+    if log is not None:
+        log.text(end_line(results, history, time.perf_counter() - t0))
     return results
 
 
@@ -405,7 +404,7 @@ def _retrieval_grid(test: Split, idx: np.ndarray, pos: list, queries: int, top: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .plots import retrieval_grid   # imports pyplot, so after the backend is chosen
+    from .plots import retrieval_grid   # optional library: plots imports pyplot, so only after the backend is chosen
     qi = list(range(queries))
     needed = sorted({int(j) for i in qi for j in idx[i, :top]})
     remap = {j: r for r, j in enumerate(needed)}
@@ -481,6 +480,7 @@ def evaluate_run(cfg: RunConfig, checkpoint, out=None, *, predictions: bool = Fa
     return result
 
 
-__all__ = ["CLI_ERRORS", "build", "build_checked", "check_model", "model_input_size", "steps_per_epoch", "optimizer_steps",
+__all__ = ["build", "build_checked", "check_model", "model_input_size", "steps_per_epoch", "optimizer_steps",
            "clique_places", "load_geo", "check_images", "load_split", "convention", "build_source", "OutputFolder",
-           "read_run_config", "deviations", "config_summary", "train_run", "evaluate_run"]
+           "read_run_config", "deviations", "config_summary", "RESUME_FIELDS", "check_resume_config", "train_run",
+           "evaluate_run"]

@@ -44,6 +44,7 @@ import torch
 from torch import nn
 
 from ._checks import check_int
+from .models import SmallCNN
 
 # layer types whose output is a fixed function of one input, identical in train() and eval() mode
 _DETERMINISTIC = (nn.Conv1d, nn.Conv2d, nn.Conv3d, nn.Linear, nn.GroupNorm, nn.LayerNorm, nn.ReLU, nn.ReLU6,
@@ -235,7 +236,6 @@ def attach(backbone: nn.Module, cache: FrozenFeatureCache) -> FrozenFeatureCache
 
     Refused (``ValueError``) when the backbone has no frozen-block hook or its frozen blocks are not
     deterministic (:func:`check_cacheable`)."""
-    from .models import SmallCNN
 
     if not isinstance(cache, FrozenFeatureCache):
         raise ValueError(f"cache must be a FrozenFeatureCache, got {type(cache).__name__}")

@@ -14,7 +14,7 @@ kernels (any x86-64 processor since 2013 has them) and MKL in its conditional-nu
 mode ``COMPATIBLE`` (the same code on Intel and AMD). The optimiser's update runs in torch's fused kernel
 (:func:`vpr_nb.training.make_optimizer`), whose square root is the processor's exact one, not MKL's.
 
-Measured with :func:`fingerprint` (six Adam steps of NetVLAD and of SALAD fine-tuning) on an AMD EPYC
+Measured with :func:`vpr_nb.fingerprint.fingerprint` (six Adam steps of NetVLAD and of SALAD fine-tuning) on an AMD EPYC
 (AVX-512) and an Intel Xeon (AVX-512), same library versions: native kernels differ in both rows; these
 pins with the fused update give the same bits on both; with MKL in its ``AVX2`` mode the SALAD row still
 differs (its Sinkhorn's ``logsumexp``), and with the unfused update both rows differ (MKL's ``sqrt``).
@@ -25,13 +25,17 @@ cache per hardware thread, the course backbone's 1x1 projection sums its channel
 The variables must be set before the libraries start, i.e. in the environment of the process that imports
 them: :func:`pinned_environ` gives it for a child process (a kernel, a worker), ``python -m vpr_nb.kernels
 --run CMD ...`` runs a command in it, and :func:`pin_this_process` sets it for the processes this one starts.
-``python -m vpr_nb.kernels`` prints which kernels a process gets and its fingerprint, to compare machines.
+``python -m vpr_nb.kernels`` prints which kernels a process gets and ``python -m vpr_nb.fingerprint`` what a few
+training steps compute with them, to compare machines.
+
+This module is a process setting only: it imports no other part of the package, and importing it starts neither
+torch nor numpy (their imports sit in the functions that need them), so that the pins can be set first.
 """
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
+import platform
 import sys
 from collections.abc import Mapping
 
@@ -78,6 +82,37 @@ def is_pinned(env: Mapping[str, str] | None = None) -> bool:
     return all(env.get(k) == v for k, v in PINNED.items())
 
 
+# The libraries that read PINNED when they start: once one of them runs, this process keeps the kernels it got.
+NUMERICAL_LIBRARIES = ("numpy", "torch", "scipy", "faiss", "matplotlib")
+NATIVE_ENV = "VPR_NB_NATIVE_KERNELS"     # =1: leave the kernels to the libraries (faster; other trained numbers)
+# How far a trained number may move when a notebook runs on its processor's native kernels instead of the pinned
+# ones: measured by executing the CI profile of every notebook both ways on one machine (the largest Recall@1
+# difference of a printed trained number; ``tests/test_kernels.py`` names the measurement).
+UNPINNED_DIFFERENCE = 0.07
+
+
+def pin_before_start() -> str | None:
+    """Pin this process's CPU kernels from inside it, if no numerical library has started yet.
+
+    Returns None when the process computes with the pinned kernels (it already did, or does from now on), else
+    one phrase saying why it cannot: :data:`NATIVE_ENV` asks for the native kernels, the processor is not
+    x86-64 (the pins choose x86-64 kernels), or a library of :data:`NUMERICAL_LIBRARIES` started first. A notebook
+    calls it by importing :mod:`vpr_nb.notebook` before numpy and torch, so that a plain ``jupyter lab``, a hub
+    or VS Code computes the stored numbers without ``make lab``."""
+    if is_pinned():
+        return None
+    if os.environ.get(NATIVE_ENV) == "1":
+        return f"{NATIVE_ENV}=1 asks for the processor's own kernels"
+    machine = platform.machine().lower()
+    if machine not in ("x86_64", "amd64"):
+        return f"the pinned kernels are x86-64 kernels and this processor is {machine or 'unknown'}"
+    started = [m for m in NUMERICAL_LIBRARIES if m in sys.modules]
+    if started:
+        return f"{', '.join(started)} started before vpr_nb.notebook could pin the kernels"
+    os.environ.update(PINNED)
+    return None
+
+
 def apply_in_process() -> bool:
     """In a pinned process (:func:`is_pinned`), route torch's convolutions around oneDNN; return whether it did.
 
@@ -102,11 +137,11 @@ def apply_in_process() -> bool:
     there, naming the processor. Routing the 1x1 projection around NNPACK would close the gap, and changes
     every stored number of the course.
 
-    Called by :mod:`vpr_nb.models` when it is imported and by :func:`vpr_nb.notebook.setup`; costs about 1.8x
+    Called once by each front door (:func:`vpr_nb.notebook.setup`, the console scripts, the tests' conftest); costs about 1.8x
     on a whole-network training step, less on the course's fine-tuning (one trainable block)."""
     if not is_pinned():
         return False
-    import torch
+    import torch   # at call time: importing this module must not start torch
 
     torch.backends.mkldnn.enabled = False
     return True
@@ -115,8 +150,6 @@ def apply_in_process() -> bool:
 def describe() -> dict:
     """What this process computes with: processor, torch's ATen capability, the library versions and whether
     the environment is pinned. For results stamps and for comparing two machines."""
-    import platform
-
     import numpy as np
     import torch
 
@@ -168,74 +201,25 @@ def processor_name() -> str:
                     return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    import platform
-
     return platform.processor() or "unknown"
 
 
-def _digest(*arrays) -> str:
-    h = hashlib.sha256()
-    for a in arrays:
-        h.update(a.tobytes())
-    return h.hexdigest()[:16]
+def cpu_description() -> str:
+    """The processor and the CPU kernels this process computes with, e.g. ``"AMD EPYC; pinned kernels (AVX2, MKL
+    COMPATIBLE)"`` or ``"Intel(R) Xeon(R) Processor; native kernels (torch AVX512)"``.
 
-
-def fingerprint(steps: int = 6) -> dict[str, str]:
-    """Short hashes of what the course computes, each stage on its own, so two machines can be compared:
-    ``render`` (a tiny city split's pixels, numpy), ``features`` (the course backbone's local features),
-    ``kmeans`` (faiss k-means, NetVLAD's initialisation), ``search`` (faiss exact search), and ``netvlad`` /
-    ``salad`` (the weights after ``steps`` Adam steps of the course recipe's triplet fine-tuning).
-
-    Equal hashes on two machines mean those numbers are bit for bit the same there (same library versions).
-    Uses one torch thread, as the notebooks do; takes a few seconds."""
-    import dataclasses
-
-    import numpy as np
-    import torch
-
-    from ._checks import check_int
-    from .evaluation import images_to_tensor, retrieve
-    from .aggregation import kmeans_centroids
-    from .pretrain import course_backbone
-    from .recipe import RECIPE, Method, build_start, make_source
-    from .synthetic import make_dataset
-    from .training import make_optimizer
-
-    steps = check_int(steps, "steps", minimum=1)
-    apply_in_process()
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    Trained numbers depend on the kernels: with the native ones, a fine-tune amplifies the last-bit differences
+    between processors into another model; :func:`vpr_nb.report.run_report` pins them, so that a results file
+    says whether another machine should give the same numbers."""
+    if is_pinned():
+        return f"{processor_name()}; pinned kernels (AVX2, MKL COMPATIBLE)"
     try:
-        split = make_dataset("city", seed=0, size="tiny", splits=("train",)).train
-        out = {"render": _digest(split.db_images, split.q_images)}
-        backbone = course_backbone(final_relu=False).eval()
-        with torch.no_grad():
-            fmap = backbone(images_to_tensor(split.db_images[:64]))
-        out["features"] = _digest(fmap.numpy())
-        local = fmap.permute(0, 2, 3, 1).reshape(-1, fmap.shape[1]).numpy()
-        centroids = kmeans_centroids(local, 8, niter=10, seed=0)
-        out["kmeans"] = _digest(np.ascontiguousarray(centroids, dtype=np.float32))
-        desc = torch.nn.functional.normalize(fmap.mean((2, 3)), dim=1).numpy()
-        dist, idx = retrieve(desc[:48], desc[48:], k=5)
-        out["search"] = _digest(np.ascontiguousarray(dist), np.ascontiguousarray(idx))
-        recipe = dataclasses.replace(RECIPE, batch_size=4, num_candidates=50, frozen_cache=False)
-        for agg in ("netvlad", "salad"):
-            method = Method(agg, agg)
-            model = build_start(method, split, recipe, seed=0)
-            opt = make_optimizer(model, recipe.train_config(1e-3, 0))
-            model.train()
-            losses = []
-            for step, loss in enumerate(make_source(method, split, recipe).steps(model, np.random.default_rng(0))):
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                losses.append(float(loss.detach()))
-                if step + 1 == steps:
-                    break
-            out[agg] = _digest(np.array(losses), *[p.detach().numpy().copy() for p in model.parameters()])
-    finally:
-        torch.set_num_threads(threads)
-    return out
+        import torch   # at call time: importing this module must not start torch (see the module docstring)
+
+        kernels = torch.backends.cpu.get_cpu_capability()
+    except Exception:  # noqa: BLE001 - an old or missing torch: the processor alone is still worth recording
+        kernels = "unknown"
+    return f"{processor_name()}; native kernels (torch {kernels})"
 
 
 def main(argv=None) -> int:
@@ -253,20 +237,15 @@ def main(argv=None) -> int:
                                      epilog="--run CMD [ARGS ...]: run a command with the pinned environment "
                                             "(must come first)")
     parser.add_argument("--env", action="store_true", help="print the pinned environment as NAME=value lines")
-    parser.add_argument("--steps", type=int, default=6, help="training steps of the fingerprint (default 6)")
     args = parser.parse_args(argv)
     if args.env:
         for k, v in PINNED.items():
             print(f"{k}={v}")
         return 0
-    if args.steps < 1:
-        print(f"error: --steps must be at least 1, got {args.steps}", file=sys.stderr)
-        return 2
     apply_in_process()
     for k, v in describe().items():
         print(f"{k}: {v}")
-    for k, v in fingerprint(args.steps).items():
-        print(f"fingerprint {k}: {v}")
+    print("fingerprint: python -m vpr_nb.fingerprint (what a few training steps compute here)")
     return 0
 
 

@@ -11,6 +11,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Rectangle
 
+from .synthetic import SPLITS
+
 SPLIT_COLOURS = {0: "tab:blue", 1: "tab:orange", 2: "tab:green"}
 CORRECT, WRONG = "#1a9850", "#d73027"
 
@@ -24,7 +26,6 @@ def _check_images(images, name: str) -> np.ndarray:
 
 def plot_map(dataset, ax=None, show_scene: bool = True, title: str | None = None):
     """Database (dots) and query (crosses) positions coloured by split, over the scene's walls."""
-    from .synthetic import SPLITS
     if ax is None:
         _, ax = plt.subplots(figsize=(10, 4))
     scene = dataset.extra.get("scene") if show_scene else None

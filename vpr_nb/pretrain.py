@@ -47,22 +47,35 @@ optionally with only the last blocks trainable, the way VGG16 conv5 / DINOv2's l
 """
 from __future__ import annotations
 
-import argparse
+import copy
 import hashlib
 import json
 import os
 import platform
 import sys
 import time
+import typing
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
+from . import cli
 from ._checks import check_int
-from .models import SmallCNN, load_state_checked, read_weights
+from .aggregation import GeM
+from .evaluation import evaluate_descriptors, evaluate_model, images_to_tensor, raw_pixel_descriptors
+from .kernels import apply_in_process, cpu_description
+from .losses import LOCAL_NEGATIVES, MultiSimilarityLoss, local_infonce
+from .models import SmallCNN, VPRModel, load_state_checked, read_weights
 from .package_data import checkout_root, course_backbone_path
+from .probes import local_feature_probe, near_duplicate_probe
+from .samplers import random_place_batches
+from .seeding import seed_everything
+from .synthetic import make_dataset
+from .training import PlaceBatchSource, TrainConfig, save_checkpoint, train
+from .typed_parsing import parse_value
 
 CHECKPOINT = course_backbone_path()    # vpr_nb/weights/course_backbone.pt, package data (installed with vpr_nb)
 CORPUS_SEED_BASE = 100        # corpus worlds use seeds >= 100; notebooks use seeds 0-4
@@ -118,7 +131,6 @@ class PretrainConfig:
         if not (self.local_weight >= 0 and self.local_temperature > 0):
             raise ValueError(f"local_weight must be >= 0 and local_temperature > 0, got {self.local_weight} and "
                              f"{self.local_temperature}")
-        from .losses import LOCAL_NEGATIVES
         if self.local_negatives not in LOCAL_NEGATIVES:
             raise ValueError(f"local_negatives must be one of {LOCAL_NEGATIVES}, got {self.local_negatives!r}")
 
@@ -151,9 +163,7 @@ def build_corpus(cfg: PretrainConfig, progress: bool = True, twins: bool = False
     camera under each of its world's query conditions. Returns (images, labels, (twin_of, twin_images)):
     ``twin_images[i]`` shows what ``images[twin_of[i]]`` shows, from the same camera, under another condition
     (None without twins)."""
-    from tqdm.auto import tqdm
 
-    from .synthetic import make_dataset
 
     worlds = [("city", s) for s in cfg.city_seeds] + [("route", s) for s in cfg.route_seeds]
     images, labels, offset, start, twin_of, twin_images = [], [], 0, 0, [], []
@@ -172,15 +182,11 @@ def build_corpus(cfg: PretrainConfig, progress: bool = True, twins: bool = False
 
 
 def _split(preset: str, seed: int, split: str):
-    from .synthetic import make_dataset
     return make_dataset(preset, seed=seed, splits=(split,)).split(split)
 
 
 def held_out_recalls(backbone, ns=(1, 5, 10)) -> dict[str, dict]:
     """Recall@N of ``backbone`` frozen + GeM (and of raw pixels) on the :data:`HELD_OUT` worlds."""
-    from .aggregation import GeM
-    from .evaluation import evaluate_descriptors, evaluate_model, raw_pixel_descriptors
-    from .models import VPRModel
 
     model = VPRModel(backbone, GeM(in_channels=backbone.out_channels))
     out = {}
@@ -201,9 +207,6 @@ def _local_term_source(images, batches, cfg: PretrainConfig, twins=None):
     and its condition twin (``twins`` = (twin_of, twin_images), :func:`build_corpus`; without twins the image
     itself), the second one cropped by 1..``cfg.local_shift`` feature columns (drawn per step from the epoch's
     generator)."""
-    from .evaluation import images_to_tensor
-    from .losses import MultiSimilarityLoss, local_infonce
-    from .training import PlaceBatchSource
 
     class LocalContrastSource(PlaceBatchSource):
         def steps(self, model, rng, shard=(0, 1), device=None):
@@ -233,11 +236,7 @@ def backbone_probes(backbone: SmallCNN) -> dict:
     the local features before the final ReLU on the city's database images (effective dimension, Eq. 1, and
     within-image cosine; the course's targets >= 32 and <= 0.5) and the near-duplicate rate on the route at 5
     and 10 m, raw pixels and frozen backbone + GeM (targets <= 0.5 and <= 0.25 at 5 m)."""
-    import copy
 
-    from .aggregation import GeM
-    from .models import VPRModel
-    from .probes import local_feature_probe, near_duplicate_probe
 
     pre = copy.deepcopy(backbone)
     pre.features[-1] = torch.nn.Identity()
@@ -256,16 +255,11 @@ def backbone_probes(backbone: SmallCNN) -> dict:
 
 def pretrain(cfg: PretrainConfig, progress: bool = True) -> tuple[SmallCNN, dict]:
     """Train the course backbone on the corpus; returns (backbone, info) deterministically."""
-    import vpr_nb
-    from .aggregation import GeM
-    from .samplers import random_place_batches
-    from .models import VPRModel
-    from .training import TrainConfig, train
 
     t0 = time.perf_counter()
     images, labels, twins = build_corpus(cfg, progress, twins=cfg.local_weight > 0 and cfg.local_twins)
     render_s = time.perf_counter() - t0
-    vpr_nb.seed_everything(cfg.seed)
+    seed_everything(cfg.seed)
     backbone = SmallCNN(width=cfg.width, out_channels=cfg.out_channels, final_norm=cfg.final_norm)
     model = VPRModel(backbone, GeM(in_channels=backbone.out_channels))
 
@@ -296,8 +290,6 @@ def _sha256(path: Path) -> str:
 
 def save_backbone(backbone: SmallCNN, cfg: PretrainConfig, info: dict, out, command: str) -> dict:
     """Write the half-precision state dict atomically to ``out`` and its JSON card beside it."""
-    from .report import cpu_description
-    from .training import save_checkpoint
 
     out = Path(out)
     state = {k: v.detach().to(torch.float16) if v.is_floating_point() else v
@@ -393,9 +385,7 @@ def _read_backbone(path: Path, width: int, out_channels: int, final_norm: int = 
 
 def _config_from(profile: str, items) -> PretrainConfig:
     """The :class:`PretrainConfig` of ``profile`` with ``KEY=VALUE`` items, each parsed by its field's type."""
-    import typing
 
-    from .typed_parsing import parse_value
 
     kw = dict(PROFILES[profile])
     hints = typing.get_type_hints(PretrainConfig)
@@ -422,10 +412,14 @@ def _check_out(out: Path) -> Path:
     return out
 
 
-def main(argv=None) -> int:
-    from .experiment import CLI_ERRORS
+EXAMPLES = (("re-make the committed course backbone (about 6 min on 2 cores)", ""),
+            ("a quick backbone into another file, with a setting changed",
+             "--profile quick --set lr=0.002 --out /tmp/backbone.pt"))
 
-    parser = argparse.ArgumentParser(prog="python -m vpr_nb.pretrain", description=__doc__.split("\n\n")[0])
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = cli.parser("vpr-pretrain", "vpr_nb.pretrain", __doc__, EXAMPLES)
     parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
     parser.add_argument("--out", default=None, help="checkpoint path (a .json card is written beside it); default: the "
                         "committed vpr_nb/weights/course_backbone.pt of the clone vpr_nb runs from")
@@ -437,18 +431,24 @@ def main(argv=None) -> int:
             parser.error("--out is required: this vpr_nb is installed, not run from a clone of the course, and the "
                          "installed course backbone is not overwritten")
         args.out = str(CHECKPOINT)
-    try:
+    at = {"saving": False}
+
+    def interrupted(exc):
+        kept = ("it was being written: check its .json card" if at["saving"] else "it was not written")
+        return f"interrupted; {args.out}: {kept}; run the command again: {cli.command_line(parser.prog, argv)}"
+
+    def work() -> int:
         cfg = _config_from(args.profile, args.set)       # checked before the minutes of training
         out = _check_out(Path(args.out))
+        apply_in_process()                   # the pinned kernels' convolutions (vpr_nb.kernels), as every front door
         torch.set_num_threads(1)             # one thread: the same weights on any machine
         backbone, info = pretrain(cfg)
-        command = "python -m vpr_nb.pretrain " + " ".join(a if " " not in a else repr(a) for a in (argv or sys.argv[1:]))
+        at["saving"] = True
+        command = "python -m vpr_nb.pretrain " + " ".join(a if " " not in a else repr(a) for a in argv)
         meta = save_backbone(backbone, cfg, info, out, command.strip())
-    except CLI_ERRORS as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps({k: meta[k] for k in ("file", "sha256", "bytes", "train_seconds", "held_out")}, indent=1))
-    return 0
+        print(json.dumps({k: meta[k] for k in ("file", "sha256", "bytes", "train_seconds", "held_out")}, indent=1))
+        return 0
+    return cli.run(work, interrupted)
 
 
 if __name__ == "__main__":

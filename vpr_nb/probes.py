@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 from ._checks import as_float_matrix, as_utm, check_int, check_positive, check_tensor
+from .evaluation import as_image_array, compute_descriptors, images_to_tensor, raw_pixel_descriptors
 
 ANCHORS = ("database", "query")
 
@@ -143,7 +144,6 @@ def within_image_cosine(maps) -> float:
 def local_feature_maps(backbone: torch.nn.Module, images, batch_size: int = 256) -> torch.Tensor:
     """``backbone``'s output maps ``[N, C, h, w]`` (float32, eval mode, no autograd) for uint8 images
     ``(N, H, W, 3)``; the backbone's mode is restored afterwards."""
-    from .evaluation import as_image_array, images_to_tensor
 
     if not isinstance(backbone, torch.nn.Module):
         raise ValueError(f"backbone must be a torch.nn.Module, got {type(backbone).__name__}")
@@ -224,7 +224,6 @@ def near_duplicate_probe(split, model: torch.nn.Module | None = None, steps: Seq
     """:func:`near_duplicate_rate` at every step (metres) on a route ``split``, for ``model``'s
     descriptors (:func:`vpr_nb.evaluation.compute_descriptors`) or, with ``model=None``, raw pixels
     (:func:`vpr_nb.evaluation.raw_pixel_descriptors`). Returns ``{step: fraction}``."""
-    from .evaluation import compute_descriptors, raw_pixel_descriptors
 
     for name in ("db_images", "q_images", "db_utm", "q_utm"):
         if not hasattr(split, name):

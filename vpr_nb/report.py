@@ -27,11 +27,15 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
+from urllib.parse import quote
+
+from .kernels import cpu_description, pin_this_process
 
 RESULTS_ENV = "VPR_NB_RESULTS"
 PROFILES = ("ci", "reproduce")
@@ -39,14 +43,14 @@ DEFAULT_PATTERN = "[0-9][0-9]_*.ipynb"
 INLINE_BACKEND = "module://matplotlib_inline.backend_inline"
 
 
-def _jsonable(value):
+def jsonable(value):
     """Numbers, strings, lists and dicts of them (numpy scalars/arrays are converted)."""
     if hasattr(value, "tolist"):
         value = value.tolist()
     if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     if value is None or isinstance(value, (bool, int, float, str)):
@@ -64,7 +68,7 @@ def record(notebook: str, results: Mapping) -> None:
         raise ValueError("record() needs a non-empty notebook key such as '01_retrieval_and_recall'")
     if not isinstance(results, Mapping) or not results:
         raise ValueError("record() needs a non-empty dict of results, e.g. {'R@1': 0.71}")
-    payload = {"notebook": notebook, "results": _jsonable(results)}
+    payload = {"notebook": notebook, "results": jsonable(results)}
     path = os.environ.get(RESULTS_ENV)
     if not path:
         return
@@ -75,17 +79,50 @@ def record(notebook: str, results: Mapping) -> None:
 # ---------------------------------------------------------------------------------------------
 # Markdown rendering
 # ---------------------------------------------------------------------------------------------
+# Recorded strings and keys are text, never markup: ``&``, ``<`` and ``>`` become HTML entities (no tag, in
+# Markdown or pasted into HTML), the Markdown punctuation that makes links, images, code and table cells is
+# backslash-escaped (``\\`` first, so that a trailing backslash cannot undo an escape), and the colon of a URL
+# scheme, the dot of ``www.`` and the ``@`` of an e-mail address become numeric references, so that no renderer
+# turns them into an autolink (GitHub links bare ``https://…``, ``www.…`` and ``a@b.c``).
+_MARKUP = str.maketrans({"\\": "\\\\", "&": "&amp;", "<": "&lt;", ">": "&gt;", "[": "\\[", "]": "\\]",
+                         "(": "\\(", ")": "\\)", "!": "\\!", "`": "\\`", "|": "\\|", "\n": " ", "\r": " "})
+_AUTOLINK = re.compile(r"(?i)(?<![a-z0-9+.-])(?:https?|ftp|javascript|vbscript|data|file|mailto|xmpp):"
+                       r"|(?<![a-z0-9])www\.|@(?=[\w+-]+\.[\w-])")
+_REFERENCE = {":": "&#58;", ".": "&#46;", "@": "&#64;"}
+# A value that is not a finite number, shown so that it cannot pass for one: record() stores NaN / ±inf as the
+# strings "nan" / "inf" / "-inf" (JSON has no such numbers); a float passed to render_table directly is NaN / inf.
+NON_FINITE = {"nan": "**⚠ NaN**", "inf": "**⚠ inf**", "+inf": "**⚠ inf**", "-inf": "**⚠ -inf**",
+              "infinity": "**⚠ inf**", "+infinity": "**⚠ inf**", "-infinity": "**⚠ -inf**"}
+
+
+def escape_markdown(text) -> str:
+    """``text`` (any recorded string or key) as literal Markdown and HTML: no tag, link, image, code span,
+    autolink or table cell boundary can come from it; a newline becomes a space."""
+    text = str(text).translate(_MARKUP)
+    return _AUTOLINK.sub(lambda m: m.group(0)[:-1] + _REFERENCE[m.group(0)[-1]], text)
+
+
 def format_value(value) -> str:
-    """One table cell: floats to 3 decimals (3 significant digits when tiny), lists comma-joined."""
+    """One table cell: floats to 3 decimals (3 significant digits when tiny), lists comma-joined, dicts as
+    ``{key: value, ...}``, strings escaped (:func:`escape_markdown`).
+
+    A value that is not a finite number (a float NaN / ±inf, or the strings ``"nan"`` / ``"inf"`` / ``"-inf"``
+    that :func:`record` stores for them) is shown in bold with a warning sign: ``**⚠ NaN**``, ``**⚠ inf**``,
+    ``**⚠ -inf**`` (:data:`NON_FINITE`)."""
     if isinstance(value, bool) or value is None:
         return str(value)
     if isinstance(value, float):
+        if not math.isfinite(value):
+            return NON_FINITE[str(value)]
         return f"{value:.3f}" if value == 0 or abs(value) >= 1e-3 else f"{value:.3g}"
+    if isinstance(value, int):
+        return str(value)
     if isinstance(value, (list, tuple)):
         return ", ".join(format_value(v) for v in value)
     if isinstance(value, Mapping):
-        return json.dumps(value)
-    return str(value).replace("|", "\\|").replace("\n", " ")
+        return "{" + ", ".join(f"{escape_markdown(k)}: {format_value(v)}" for k, v in value.items()) + "}"
+    text = str(value)
+    return NON_FINITE.get(text.strip().lower()) or escape_markdown(text)
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
@@ -100,7 +137,9 @@ def render_table(results: Mapping) -> str:
     A flat dict becomes a two-column table (``name | value``); a dict of dicts becomes one table
     with the outer keys as rows and the union of the inner keys as columns (blank where missing);
     lists are comma-joined. A dict mixing both gives the flat table followed by the grid; a value
-    that is itself a dict of dicts gets its own grid below, titled with its key.
+    that is itself a dict of dicts gets its own grid below, titled with its key. Keys and strings are
+    escaped (:func:`escape_markdown`: no tag, link or image can come from a recorded result), and a value that
+    is not a finite number is marked ``**⚠ NaN**`` / ``**⚠ inf**`` (:func:`format_value`).
     """
     if not isinstance(results, Mapping) or not results:
         raise ValueError("render_table() needs a non-empty dict, e.g. {'R@1': 0.71}")
@@ -110,15 +149,15 @@ def render_table(results: Mapping) -> str:
     nested = {k: v for k, v in results.items() if isinstance(v, Mapping) and k not in deeper}
     parts = []
     if flat:
-        parts.append(_table(["name", "value"], [[format_value(k), format_value(v)] for k, v in flat.items()]))
+        parts.append(_table(["name", "value"], [[escape_markdown(k), format_value(v)] for k, v in flat.items()]))
     if nested:
         columns: list[str] = []
         for inner in nested.values():
             columns += [c for c in inner if c not in columns]
-        rows = [[format_value(k)] + [format_value(inner[c]) if c in inner else "" for c in columns]
+        rows = [[escape_markdown(k)] + [format_value(inner[c]) if c in inner else "" for c in columns]
                 for k, inner in nested.items()]
-        parts.append(_table([""] + [format_value(c) for c in columns], rows))
-    parts += [f"**{format_value(k)}**\n\n{render_table(v)}" for k, v in deeper.items()]
+        parts.append(_table([""] + [escape_markdown(c) for c in columns], rows))
+    parts += [f"**{escape_markdown(k)}**\n\n{render_table(v)}" for k, v in deeper.items()]
     return "\n\n".join(parts)
 
 
@@ -187,26 +226,6 @@ def environment_header(profile: str) -> dict:
     return head
 
 
-def cpu_description() -> str:
-    """The processor and the CPU kernels the notebooks run with, e.g. ``"AMD EPYC; pinned kernels (AVX2, MKL
-    COMPATIBLE)"`` or ``"Intel(R) Xeon(R) Processor; native kernels (torch AVX512)"``.
-
-    Trained numbers depend on the kernels: with the native ones, a fine-tune amplifies the last-bit differences
-    between processors into another model (:mod:`vpr_nb.kernels`); :func:`run_report` pins them, so that a
-    results file says whether another machine should give the same numbers."""
-    from .kernels import is_pinned, processor_name
-
-    if is_pinned():
-        return f"{processor_name()}; pinned kernels (AVX2, MKL COMPATIBLE)"
-    try:
-        import torch
-
-        kernels = torch.backends.cpu.get_cpu_capability()
-    except Exception:  # noqa: BLE001 - an old or missing torch: the processor alone is still worth recording
-        kernels = "unknown"
-    return f"{processor_name()}; native kernels (torch {kernels})"
-
-
 def find_notebooks(notebooks_dir, pattern: str = DEFAULT_PATTERN) -> list[Path]:
     """Notebooks in ``notebooks_dir`` matching ``pattern``, sorted by name (00, 01, ...).
 
@@ -273,24 +292,27 @@ def run_notebook(src: Path, out_path: Path, profile: str, results_file: Path) ->
 
 
 def render_markdown(header: Mapping, notebooks: list[dict]) -> str:
-    """The whole ``results.md``."""
+    """The whole ``results.md``: every name, key, error and recorded string escaped (:func:`escape_markdown`),
+    so that the only links and images in it are the report's own figures (``figures/...png``)."""
     lines = ["# vpr-notebooks results report", "", render_table(dict(header)), "", "## Summary", ""]
     lines.append(_table(["notebook", "status", "wall time (s)"],
-                        [[nb["name"], nb["status"], f"{nb['seconds']:.1f}"] for nb in notebooks]))
+                        [[escape_markdown(nb["name"]), escape_markdown(nb["status"]), f"{nb['seconds']:.1f}"]
+                         for nb in notebooks]))
     for nb in notebooks:
-        lines += ["", f"## {nb['name']}", "", f"- status: **{nb['status']}**"]
+        name = escape_markdown(nb["name"])
+        lines += ["", f"## {name}", "", f"- status: **{escape_markdown(nb['status'])}**"]
         if nb["error"]:
-            lines.append(f"- error: `{nb['error'].replace('`', chr(39))}`")
+            lines.append(f"- error: {escape_markdown(nb['error'])}")
         lines.append(f"- wall time: {nb['seconds']:.1f} s")
-        lines.append(f"- executed copy: `notebooks/{nb['name']}.ipynb`, figures: {len(nb['figures'])}")
+        lines.append(f"- executed copy: notebooks/{name}.ipynb, figures: {len(nb['figures'])}")
         if not nb["results"]:
             lines += ["", "_No results recorded._"]
         for key, results in nb["results"].items():
             if len(nb["results"]) > 1 or key != nb["name"]:
-                lines += ["", f"### {key}"]
+                lines += ["", f"### {escape_markdown(key)}"]
             lines += ["", render_table(results)]
-        if nb["figures"]:
-            lines += [""] + [f"![{Path(f).stem}]({f})" for f in nb["figures"]]
+        if nb["figures"]:       # relative paths the runner wrote (figures/<stem>_<cell>_<k>.png), percent-encoded
+            lines += [""] + [f"![{escape_markdown(Path(f).stem)}]({quote(Path(f).as_posix())})" for f in nb["figures"]]
     return "\n".join(lines) + "\n"
 
 
@@ -328,8 +350,6 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     ``jobs`` > 1 runs that many notebooks at once (each kernel uses one torch thread), a notebook starting
     only after the notebooks it reads (:func:`notebook_dependencies`); the report lists them in order."""
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-    from .kernels import pin_this_process
 
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r}; choose one of {PROFILES} "

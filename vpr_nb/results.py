@@ -30,13 +30,21 @@ its own starting point (:func:`control_gate`).
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
 
+import torch
+
 from .package_data import committed_results_dir, results_dir_for_writing
+from .report import jsonable, environment_header, uncommitted_changes
+from .models import read_weights
+from .pretrain import CHECKPOINT
+from .synthetic import make_config
+from .synthetic.config import OPTIONAL_CONTENT, WorldConfig
 
 
 ALLOW_DIRTY_ENV = "VPR_NB_ALLOW_DIRTY"   # =1: a trial reproduce run may save from a dirty tree
@@ -44,19 +52,12 @@ ALLOW_DIRTY_ENV = "VPR_NB_ALLOW_DIRTY"   # =1: a trial reproduce run may save fr
 
 def _canonical(value):
     """``value`` as JSON would give it back (tuples → lists, numpy scalars → numbers, keys → str)."""
-    from .report import _jsonable
-    return json.loads(json.dumps(_jsonable(value)))
+    return json.loads(json.dumps(jsonable(value)))
 
 
 def backbone_fingerprint(path=None) -> str:
     """sha256 of the course backbone's *tensors* (names, dtypes, shapes, values), not of the file's bytes,
     so results are tied to the weights they were computed with."""
-    import hashlib
-
-    import torch
-
-    from .models import read_weights
-    from .pretrain import CHECKPOINT
 
     state = read_weights(Path(path) if path is not None else CHECKPOINT, "course backbone")
     h = hashlib.sha256()
@@ -72,7 +73,6 @@ def world_fingerprints(config: Mapping) -> dict[str, dict]:
     (key ``"world"``) and each ``config["worlds"][name]`` (key ``"worlds.<name>"``), every one a dict with
     ``preset``, optional ``size`` and ``overrides`` (other entries, such as the seed, are the
     experiment's and stay in ``config``). Unknown presets or options raise ValueError."""
-    from .synthetic import make_config
 
     specs = {}
     if isinstance(config.get("world"), Mapping):
@@ -104,7 +104,6 @@ def _stale_worlds(path: Path, committed, now: dict) -> str | None:
         if old["fingerprint"] == rec["fingerprint"]:
             continue
         was, cur = old.get("config") or {}, rec["config"]
-        from .synthetic.config import OPTIONAL_CONTENT, WorldConfig
         off = {k: _canonical(getattr(WorldConfig, k)) for k in OPTIONAL_CONTENT}     # absent = at its default
         fields = sorted(k for k in set(was) | set(cur) if was.get(k, off.get(k, "(absent)")) != cur.get(k, off.get(k, "(absent)")))
         what = (f"in WorldConfig field(s) {fields} (committed {[was.get(k, '(absent)') for k in fields]}, now "
@@ -119,7 +118,7 @@ def _stale_worlds(path: Path, committed, now: dict) -> str | None:
     return None
 
 
-def _path(name: str, results_dir, *, write: bool = False) -> Path:
+def results_path(name: str, results_dir, *, write: bool = False) -> Path:
     if not isinstance(name, str) or not name or "/" in name:
         raise ValueError(f"name must be a notebook stem such as '03_distance_ranking_weighted_loss', got {name!r}")
     if results_dir is None:     # notebooks/results/ of the clone, or the copy installed with vpr_nb (package_data)
@@ -129,17 +128,22 @@ def _path(name: str, results_dir, *, write: bool = False) -> Path:
 
 def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> Path:
     """Write ``results`` (numbers, strings, lists, dicts) for notebook ``name`` with its ``config``
-    and a stamp (git commit, date, versions), atomically. Returns the path."""
-    from .report import environment_header
+    and a stamp (git commit, date, versions), atomically. Returns the path.
+
+    Refuses (``ValueError`` naming the key path) results that :func:`load` would refuse: a NaN / inf, or a
+    number outside its metric's range (a recall above 1, a negative count, …)."""
 
     if not isinstance(config, Mapping) or not isinstance(results, Mapping):
         raise ValueError("config and results must be dicts (the experiment's settings and its tables)")
-    path = _path(name, results_dir, write=True)
+    path = results_path(name, results_dir, write=True)
+    problem = _number_problem({"results": _canonical(results)})
+    if problem:          # load would refuse the file: do not write it
+        raise ValueError(f"refusing to write {path.name}: {problem}; fix that run (a diverged seed, a wrong "
+                         f"metric?) and re-run the notebook with PROFILE = 'reproduce'")
     stamp = environment_header("reproduce")
     committed_dir = results_dir is None            # the repository's notebooks/results/: what gets committed
     if committed_dir and stamp["git commit"].endswith("(with uncommitted changes)") \
             and os.environ.get(ALLOW_DIRTY_ENV) != "1":
-        from .report import uncommitted_changes
         raise ValueError(f"refusing to write notebooks/results/{path.name} from a working tree with uncommitted "
                          f"changes ({', '.join(uncommitted_changes()[:5])}): committed results must come from "
                          f"a clean commit. Commit (or stash) first; for a trial run set {ALLOW_DIRTY_ENV}=1 "
@@ -159,17 +163,101 @@ def _json_kind(value) -> str:
         type(value), "null")
 
 
+class _NonStandardNumber(str):
+    """A ``NaN`` / ``Infinity`` / ``-Infinity`` token, which Python's json accepts and strict JSON does not:
+    kept as a marker by :func:`_read_doc` so that :func:`_number_problem` can name its key path."""
+
+
+# The range of a number in ``results``, from the key names the notebooks write (notebooks/results/*.json): the
+# innermost key on the path that names a metric decides (``rows.T-Loss.R@1[2]`` → R@1; ``best epoch.<method>[0]``
+# → best epoch; ``val R@1 per lr.<method>.0.001[1]`` → R@1). A key naming a difference (gain, gap, delta, …)
+# and every other key only has to be finite.
+_EPS = 1e-6                                        # float32 round-off of a cosine or a mean of shares
+_RELATIVE_WORDS = ("gain", "gap", "diff", "delta", "change", "improvement", "−", " - ", " vs ")
+_RULES = (
+    ("a recall, probability or share, in [0, 1]", lambda x: -_EPS <= x <= 1 + _EPS,
+     lambda k: k.startswith("p(") or any(w in k for w in ("r@", "recall", "share", "pairs in order",
+                                                          "entropy / log m", "near duplicates"))),
+    ("a cosine or rank correlation, in [-1, 1]", lambda x: -1 - _EPS <= x <= 1 + _EPS,
+     lambda k: "cosine" in k or "kendall tau" in k),
+    ("a count, a whole number >= 0", lambda x: x >= 0 and float(x).is_integer(),
+     lambda k: k in ("best epoch", "epochs run", "steps", "dim", "bytes", "keys")),
+    ("a duration in seconds, >= 0", lambda x: x >= 0, lambda k: k == "seconds"),
+    ("a learning rate, > 0", lambda x: x > 0, lambda k: k == "lr"),
+)
+
+
+def _rule_for(keys: tuple):
+    """The (description, check) of the innermost key of ``keys`` that names a metric; None: finite is enough."""
+    for key in reversed([k.lower() for k in keys if isinstance(k, str)]):
+        if any(w in key for w in _RELATIVE_WORDS):
+            return None
+        for what, ok, names in _RULES:
+            if names(key):
+                return what, ok
+    return None
+
+
+def _key_path(keys: tuple) -> str:
+    """``results.rows.T-Loss.R@1[2]``; a key holding a dot or bracket is quoted (``"p(0,10 m) Eq.3"``)."""
+    out = ""
+    for k in keys:
+        if isinstance(k, int):
+            out += f"[{k}]"
+        else:
+            out += ("." if out else "") + (json.dumps(k, ensure_ascii=False) if any(c in k for c in ".[]\"") else k)
+    return out
+
+
+def _number_problem(value, keys: tuple = ()) -> str | None:
+    """What is wrong with the first bad number in ``value`` (``"results.rows.T.R@1[2] is NaN ..."``), or None.
+
+    Everywhere: a ``NaN`` / ``Infinity`` token or a non-finite float (``1e999``). Under ``results`` also the
+    strings ``"nan"`` / ``"inf"`` / ``"-inf"`` (how :func:`vpr_nb.report.jsonable` writes a non-finite float) and a
+    number outside its metric's range (:data:`_RULES`)."""
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            problem = _number_problem(v, keys + (str(k),))
+            if problem:
+                return problem
+        return None
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            problem = _number_problem(v, keys + (i,))
+            if problem:
+                return problem
+        return None
+    where, in_results = _key_path(keys) or "its only value", bool(keys) and keys[0] == "results"
+    if isinstance(value, _NonStandardNumber):
+        return f"{where} is {value} (a JSON token that strict JSON does not allow: a diverged or failed run?)"
+    if in_results and isinstance(value, str) and value.strip().lower() in ("nan", "inf", "-inf", "+inf"):
+        return f"{where} is {value!r} (a NaN or inf, which JSON can only hold as text: a diverged or failed run?)"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    if isinstance(value, float) and not math.isfinite(value):
+        return (f"{where} is {'NaN' if math.isnan(value) else value} (a number too large for a float, such as "
+                f"1e999, is read as inf)")
+    rule = _rule_for(keys[1:]) if in_results else None
+    if rule and not rule[1](value):
+        return f"{where} is {value!r}, but it must be {rule[0]} (by its key's name)"
+    return None
+
+
 def _read_doc(path: Path) -> dict:
     """The JSON object of a results file, with the keys :func:`save` writes; ValueError naming the file."""
     fix = (f"restore it with `git checkout -- notebooks/results/{path.name}` or re-run the notebook with "
            f"PROFILE = 'reproduce' and commit")
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = json.loads(path.read_text(encoding="utf-8"), parse_constant=_NonStandardNumber)
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path} is not UTF-8 text (byte {exc.start}); {fix}") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno}; "
                          f"truncated?); {fix}") from None
+    problem = _number_problem(doc)
+    if problem:
+        raise ValueError(f"{path}: {problem}; re-make it with `make reproduce` (or the notebook with PROFILE = "
+                         f"'reproduce') and commit, or restore it with `git checkout -- notebooks/results/{path.name}`")
     if not isinstance(doc, dict):
         raise ValueError(f"{path} holds a JSON {_json_kind(doc)}, not a results object "
                          f"{{'config', 'results', ...}}; {fix}")
@@ -189,10 +277,14 @@ def load(name: str, config: Mapping, *, results_dir=None) -> dict:
 
     Raises ``FileNotFoundError`` when nothing is committed, ``ValueError`` naming the file when it is
     not a results file (not JSON, truncated, not an object, or without its ``config`` / ``results`` /
-    ``course_backbone`` entries) and ``ValueError`` naming what differs when the notebook's experiment,
-    the backbone or a world changed since (the results are stale).
+    ``course_backbone`` entries), ``ValueError`` naming the file and the key path of a number that is not
+    finite (a ``NaN`` / ``Infinity`` token, ``1e999``, or the text ``"nan"``) or lies outside the range its
+    key names (recalls, R@N, probabilities and shares in [0, 1]; cosines and Kendall tau in [-1, 1]; epochs,
+    steps, dims, bytes and keys whole and >= 0; seconds >= 0; lr > 0; any other key: finite), and
+    ``ValueError`` naming what differs when the notebook's experiment, the backbone or a world changed since
+    (the results are stale).
     """
-    path = _path(name, results_dir)
+    path = results_path(name, results_dir)
     if not path.is_file():
         raise FileNotFoundError(f"no committed reproduce-profile results at notebooks/results/{path.name}; "
                                 f"run the notebook with PROFILE = 'reproduce' (make reproduce) and commit the file")

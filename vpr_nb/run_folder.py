@@ -1,12 +1,15 @@
 """The ``--out`` folder of a run: one run at a time (an OS lock), refused when it holds another run, left as
 it was found when the run fails before it has anything to resume.
 
-:class:`FolderLock` is ``fcntl.flock`` on ``<folder>/.lock``: the kernel gives an exclusive lock to exactly one
-open file at a time and drops it when its process ends, however it ends (a crash, ``kill -9``), so a lock
-left by a dead process is free to take without guessing from process ids, and there is no window between
-checking and taking. The file holds the holder's process id, host and start time, for the message a second
-run gets. Releasing removes the file while still holding the lock; a process that locked the removed file
-sees that the path no longer names its file and tries again, so two processes never both hold the folder.
+:class:`FolderLock` is an OS file lock on ``<folder>/.lock``, taken through the ``filelock`` package's
+:func:`filelock.lock_descriptor` (``flock`` on Linux and macOS, ``LockFileEx`` on byte 0 on Windows): the
+kernel gives an exclusive lock to exactly one open file at a time and drops it when its process ends, however
+it ends (a crash, ``kill -9``), so a lock left by a dead process is free to take without guessing from process
+ids, and there is no window between checking and taking. The file holds the holder's process id, host and start
+time, after one blank byte (Windows forbids other processes to read the locked byte 0), for the message a
+second run gets. Releasing removes the file while still holding the lock (Windows refuses to remove an open
+file: there it is removed just after, unless another process has it open); a process that locked a removed
+file sees that the path no longer names its file and tries again, so two processes never both hold the folder.
 
 :class:`OutputFolder` takes the lock, then checks the folder (empty, or ``resume`` with a ``config.json``;
 ``existing="allow"`` for ``evaluate``, which rewrites its own files) and removes the temporary files of a
@@ -22,20 +25,20 @@ import shutil
 import socket
 from pathlib import Path
 
-from .atomic import atomic_write_text, remove_stale_temporaries, write_failed
+from filelock import lock_descriptor, unlock_descriptor
 
-try:
-    import fcntl
-except ImportError:                      # pragma: no cover - Windows: no flock
-    fcntl = None
+from .atomic import atomic_write_text, remove_stale_temporaries, write_failed
 
 LOCK_NAME = ".lock"
 RESUMABLE = "checkpoints/last.pt"        # a run folder holding this can be continued with --resume
+_HOLDER_AT = 1                           # the holder's line starts after byte 0, which Windows locks
+_OPEN_FLAGS = os.O_RDWR | os.O_CREAT | getattr(os, "O_BINARY", 0)
 
 
 class FolderLock:
-    """An exclusive ``flock`` on ``folder/.lock``, held from :meth:`acquire` to :meth:`release` (or the
-    process's end). :meth:`acquire` raises ValueError naming the holder when another process has it."""
+    """An exclusive OS lock on ``folder/.lock`` (``flock`` / ``LockFileEx`` through ``filelock``), held from
+    :meth:`acquire` to :meth:`release` (or the process's end). :meth:`acquire` raises ValueError naming the
+    holder when another process has it."""
 
     def __init__(self, folder):
         self.folder = Path(folder)
@@ -48,33 +51,39 @@ class FolderLock:
 
     def _holder(self, fd: int) -> str:
         try:
-            text = os.pread(fd, 200, 0).decode("utf-8", "replace").split()
+            os.lseek(fd, _HOLDER_AT, os.SEEK_SET)
+            text = os.read(fd, 200).decode("utf-8", "replace").split()
         except OSError:
             text = []
         if len(text) >= 3:
             return f"process {text[0]} on {text[1]}, started {text[2]}"
         return "another process"
 
+    def _lock(self, fd: int) -> bool:
+        """Lock ``fd`` without waiting: True when taken, False when another open file holds the lock."""
+        try:
+            return lock_descriptor(fd, blocking=False)
+        except OSError as exc:
+            os.close(fd)
+            raise ValueError(f"cannot lock {self.path} ({exc.strerror or exc}): the file system of {self.folder} "
+                             f"does not support file locks (a network share?); choose a folder on a local disk") from None
+
     def acquire(self) -> None:
-        if fcntl is None:                # pragma: no cover
-            raise ValueError("run folders are locked with fcntl.flock, which this platform lacks (use Linux or macOS)")
         if self.held:
             return
         while True:
             try:
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+                fd = os.open(self.path, _OPEN_FLAGS, 0o644)
             except FileNotFoundError:    # the folder was removed (a failed start) since it was made
                 self.folder.mkdir(parents=True, exist_ok=True)
                 continue
             except OSError as exc:
                 raise write_failed(self.path, exc) from None
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not self._lock(fd):
                 holder = self._holder(fd)
                 os.close(fd)
                 raise ValueError(f"{self.folder} is in use by another run ({holder}; {self.path}): wait for it to "
-                                 f"finish or choose another folder") from None
+                                 f"finish or choose another folder")
             try:
                 same = os.path.samestat(os.fstat(fd), os.stat(self.path))
             except FileNotFoundError:
@@ -84,18 +93,35 @@ class FolderLock:
             os.close(fd)                 # the holder released (removed) the file we locked: lock the new one
         started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()} {started}\n".encode(), 0)
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.write(fd, f" {os.getpid()} {socket.gethostname()} {started}\n".encode())
         self.fd = fd
 
     def release(self) -> None:
         if self.fd is None:
             return
+        fd, self.fd = self.fd, None
         try:
             os.unlink(self.path)         # while still locked: a waiter that locked this file retries
+            removed = True
         except FileNotFoundError:
+            removed = True
+        except PermissionError:          # Windows: an open file cannot be removed; remove it once closed
+            removed = False
+            try:
+                os.ftruncate(fd, 0)      # if it stays, it names no holder that has gone
+            except OSError:
+                pass
+        try:
+            unlock_descriptor(fd)        # closing drops the lock as well; unlock first, as Windows asks
+        except OSError:
             pass
-        os.close(self.fd)
-        self.fd = None
+        os.close(fd)
+        if not removed:
+            try:
+                os.unlink(self.path)     # fails while a waiting process has it open: it then takes it over
+            except OSError:
+                pass
 
     def __enter__(self):
         self.acquire()

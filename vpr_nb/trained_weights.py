@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 from .package_data import committed_results_dir
+from .results import results_path
 
 _LABEL = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 _FIX = "re-run the notebook with PROFILE = 'reproduce' and commit its results"
@@ -74,10 +75,9 @@ def save_trained(name: str, label: str, model: torch.nn.Module, start: torch.nn.
     """Write the trained part of ``model`` (:func:`trained_part` against ``start``, the same model before
     training) to ``<results dir>/<name>.<label>.pt``, atomically; return the entry for the results record
     (``file``, ``bytes``, ``sha256``, ``keys``, ``state sha256`` of the whole trained model)."""
-    from .results import _path
 
     label = _check_label(label)
-    json_path = _path(name, results_dir, write=True)
+    json_path = results_path(name, results_dir, write=True)
     part = trained_part(model, start)
     path = json_path.with_name(f"{name}.{label}.pt")
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -19,11 +19,14 @@ The shared pieces, one module each:
 - :mod:`~vpr_nb.datasets.split` :class:`GeoSplit` (a loader's listing) and :func:`drop_images`;
 - :mod:`~vpr_nb.datasets.images` :func:`read_image`, :class:`ImageDataset`, the lazy
   :class:`ImageArray` and :func:`find_unreadable_images` (Pillow + torch ops, no torchvision; ImageNet
-  normalisation by :func:`vpr_nb.evaluation.normalize_imagenet`);
+  normalisation by :func:`vpr_nb.image_tensors.normalize_imagenet`);
 - :mod:`~vpr_nb.datasets.training_split` :class:`TrainingSplit`, a ``GeoSplit`` with its images: the
   :class:`vpr_nb.split.Split` that training and evaluation read (positives per region:
   :func:`vpr_nb.split.region_positives`, re-exported here);
-- :mod:`~vpr_nb.datasets.utm` WGS84 lat/lon -> UTM (:func:`latlon_to_utm`, :func:`utm_zone`).
+- :mod:`~vpr_nb.datasets.utm` WGS84 lat/lon -> UTM (:func:`latlon_to_utm`, :func:`utm_zone`);
+- :mod:`~vpr_nb.datasets.geotags` the geotag checks the formats run at load (Nordland has no geotag):
+  an impossible UTM or lat/lon raises ValueError, an image far from its place, city or every other image
+  is named in a warning.
 
 Every loader checks that each listed image exists (``check_files=True``, one stat per file) and
 names the first missing file; malformed inputs raise ``ValueError`` naming the file and field.

@@ -106,3 +106,15 @@ def list_images(folder: Path, suffixes: Sequence[str] | None = None) -> list[Pat
     if not files:
         raise ValueError(f"no images ({', '.join(suffixes or IMAGE_SUFFIXES)}) found under {folder}")
     return files
+
+
+def gmberton_split_dir(root: Path, split: str) -> Path:
+    """The folder holding ``database/`` and ``queries/`` in gmberton's VPR-datasets-downloader layout, which
+    the gmberton format and Nordland's gmberton copy share."""
+    if (root / "database").is_dir() and (root / "queries").is_dir():
+        return root
+    for cand in (root / "images" / split, root / split):
+        if (cand / "database").is_dir() and (cand / "queries").is_dir():
+            return cand
+    raise FileNotFoundError(f"{root}: expected images/{split}/{{database,queries}}/ (or database/ and queries/) "
+                            f"in the gmberton VPR-datasets-downloader layout")

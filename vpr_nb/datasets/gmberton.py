@@ -11,15 +11,17 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import check_positive
-from ._parsing import list_images
+from ._parsing import gmberton_split_dir, list_images
+from .geotags import LAT_POLE, check_latlon, check_utm, warn_isolated
 from .split import GeoSplit
 
 
 def parse_gmberton_name(path) -> dict:
     """Fields of a VPR-datasets-downloader name ``@east@north@zone@letter@lat@lon@pano@tile@heading@...@.jpg``.
 
-    Returns ``{"east", "north", "zone", "letter", "pano_id", "heading", "note"}`` (heading None if
-    empty); raises ValueError naming the file when east/north are missing or not finite.
+    Returns ``{"east", "north", "zone", "letter", "lat", "lon", "pano_id", "heading", "note"}`` (heading,
+    lat, lon None if empty); raises ValueError naming the file when east/north are missing or not finite,
+    lat/lon not numbers or the zone not 01..60.
     """
     name = Path(path).name
     parts = name.split("@")
@@ -37,18 +39,30 @@ def parse_gmberton_name(path) -> dict:
 
     get = lambda i: parts[i] if len(parts) > i else ""  # noqa: E731
     heading = num(9, "heading") if get(9) else None
-    return {"east": num(1, "UTM_east"), "north": num(2, "UTM_north"), "zone": get(3), "letter": get(4),
+    zone = get(3)
+    if zone and not (zone.isdigit() and 1 <= int(zone) <= 60):
+        raise ValueError(f"{path}: field 3 (UTM zone) {zone!r} is not a UTM zone number (01 to 60)")
+    return {"east": num(1, "UTM_east"), "north": num(2, "UTM_north"), "zone": zone, "letter": get(4),
+            "lat": num(5, "latitude") if get(5) else None, "lon": num(6, "longitude") if get(6) else None,
             "pano_id": get(7), "heading": heading, "note": get(14) if len(parts) > 15 else ""}
 
 
-def gmberton_split_dir(root: Path, split: str) -> Path:
-    if (root / "database").is_dir() and (root / "queries").is_dir():
-        return root
-    for cand in (root / "images" / split, root / split):
-        if (cand / "database").is_dir() and (cand / "queries").is_dir():
-            return cand
-    raise FileNotFoundError(f"{root}: expected images/{split}/{{database,queries}}/ (or database/ and queries/) "
-                            f"in the gmberton VPR-datasets-downloader layout")
+def _check_geotags(sdir: Path, sides: dict) -> None:
+    """ValueError for an impossible UTM position (in names that carry a UTM zone: gmberton's Nordland names
+    hold dummy positions and no zone) or latitude/longitude; a warning for an image with no other within
+    :data:`~vpr_nb.datasets.geotags.CITY_SPAN_M` (a split may hold several cities and UTM zones)."""
+    for files, parsed in sides.values():
+        utm = np.array([[p["east"], p["north"]] for p in parsed], dtype=np.float64)
+        check_utm(utm, lambda i, _, files=files: str(files[i]), rows=[bool(p["zone"]) for p in parsed],
+                  labels=("east", "north"), swap_hint="fields 1 and 2 (UTM east, north) swapped?")
+        nan = float("nan")
+        check_latlon([nan if p["lat"] is None else p["lat"] for p in parsed],
+                     [nan if p["lon"] is None else p["lon"] for p in parsed],
+                     lambda i, c, files=files: f"{files[i]}: {c}", lat_limit=LAT_POLE,
+                     labels=("field 5 (latitude)", "field 6 (longitude)"))
+    files = [f for fs, _ in sides.values() for f in fs]
+    warn_isolated(np.array([[p["east"], p["north"]] for _, ps in sides.values() for p in ps], dtype=np.float64),
+                  str(sdir), lambda i: files[i].name, stacklevel=4)
 
 
 def load_gmberton(root, *, split: str = "test", pos_radius: float = 25.0, train_pos_radius: float = 10.0,
@@ -59,7 +73,9 @@ def load_gmberton(root, *, split: str = "test", pos_radius: float = 25.0, train_
     are found recursively and sorted (as the benchmark's ``sorted(glob('**/*.jpg'))``: only lower-case
     ``.jpg`` files count, stray ``.JPG``/``.png`` files are ignored with a warning); UTM east and
     north are fields 1 and 2 of the ``@``-split name. Positives within ``pos_radius`` (25 m,
-    ``val_positive_dist_threshold``), training positives ``train_pos_radius`` (10 m).
+    ``val_positive_dist_threshold``), training positives ``train_pos_radius`` (10 m). An impossible
+    geotag raises ValueError naming the file, an image far from all others is named in a warning
+    (:mod:`vpr_nb.datasets.geotags`).
     """
     root = Path(root)
     if not root.exists():
@@ -72,6 +88,7 @@ def load_gmberton(root, *, split: str = "test", pos_radius: float = 25.0, train_
         files = list_images(sdir / folder, suffixes=(".jpg",))   # datasets_ws.py: sorted(glob("**/*.jpg"))
         parsed = [parse_gmberton_name(f) for f in files]
         sides[side] = (files, parsed)
+    _check_geotags(sdir, sides)
     extras: dict = {"split_dir": str(sdir)}
     kw: dict = {}
     for side, (files, parsed) in sides.items():

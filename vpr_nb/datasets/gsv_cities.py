@@ -13,6 +13,7 @@ import numpy as np
 
 from .._checks import check_int
 from ._parsing import duplicates, float_column, read_csv_columns
+from .geotags import CITY_SPAN_M, LAT_LIMIT, LON_LIMIT, PLACE_SPREAD_M, check_latlon, warn_far_from_median
 from .split import GeoSplit
 from .utm import latlon_to_utm
 
@@ -42,6 +43,24 @@ def _drop_repeated_rows(df: dict[str, list[str]], path) -> dict[str, list[str]]:
     return {c: [v[i] for i in keep] for c, v in df.items()}
 
 
+def _check_spread(path, city: str, utm: np.ndarray, place: np.ndarray, lat: np.ndarray, lon: np.ndarray,
+                  zone: int, image) -> None:
+    """Warn about images far from their place (:data:`~vpr_nb.datasets.geotags.PLACE_SPREAD_M`) or, the
+    others, from their city (:data:`~vpr_nb.datasets.geotags.CITY_SPAN_M`), asking "latitude and longitude
+    swapped?" when exchanging them (projected in the city's ``zone``) puts the image back."""
+    swapped = np.full_like(utm, np.nan)
+    ok = (np.abs(lon) <= LAT_LIMIT) & (np.abs(lat) <= LON_LIMIT)
+    if ok.any():
+        with np.errstate(invalid="ignore", divide="ignore"):
+            se, sn, _ = latlon_to_utm(lon[ok], lat[ok], zone=zone)
+        swapped[ok] = np.stack([se, sn], axis=1)
+    source = f"{path} (GSV-Cities city {city!r})"
+    far = warn_far_from_median(utm, place, PLACE_SPREAD_M, source, image, what="place", swapped_utm=swapped,
+                               stacklevel=4)
+    warn_far_from_median(utm, np.full(len(utm), city), CITY_SPAN_M, source, image, what="city",
+                         swapped_utm=swapped, skip=far, stacklevel=4)
+
+
 def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_root=None,
                     check_files: bool = True) -> GeoSplit:
     """Load GSV-Cities: ``Dataframes/<city>.csv`` (columns place_id, year, month, northdeg, city_id,
@@ -55,7 +74,9 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
 
     Rows that repeat an earlier row (the same image) are counted once, with a warning naming the file
     and rows; a city left without images is named in a warning; a lat/lon outside UTM's range raises
-    ValueError naming the file and row.
+    ValueError naming the file and row; an image more than 1 km from its place's median position, or
+    100 km from its city's, is named in a warning (with "latitude and longitude swapped?" when exchanging
+    them puts it back; :mod:`vpr_nb.datasets.geotags`).
     """
     root = Path(root)
     dfdir = root / "Dataframes"
@@ -90,12 +111,7 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
                 raise ValueError(f"{path}: column {c!r} must hold integers")
             ints[c] = v.astype(np.int64)
         lat, lon = float_column(df["lat"], path, "lat"), float_column(df["lon"], path, "lon")
-        for name, v, lim in (("lat", lat, 84.0), ("lon", lon, 180.0)):
-            bad = np.flatnonzero(np.abs(v) > lim)
-            if len(bad):
-                raise ValueError(f"{path}: column {name!r}, data row {bad[0] + 1} (line {bad[0] + 2}): {v[bad[0]]:g} is "
-                                 f"outside [-{lim:g}, {lim:g}] degrees ({len(bad)} row(s) in all); UTM covers 84 S to "
-                                 f"84 N: fix the geotag (lat/lon swapped?) or drop the row")
+        check_latlon(lat, lon, lambda i, c: f"{path}: column {c!r}, data row {i + 1} (line {i + 2})")
         ids, counts = np.unique(ints["place_id"], return_counts=True)
         big = set(ids[counts >= min_img_per_place].tolist())
         keep = np.array([p in big for p in ints["place_id"]], dtype=bool)
@@ -105,10 +121,12 @@ def load_gsv_cities(root, *, cities=None, min_img_per_place: int = 4, images_roo
             continue
         e, nth, zone = latlon_to_utm(lat[keep], lon[keep])
         zones[city] = zone
-        for i in np.flatnonzero(keep):
-            name = gsv_image_name(df["city_id"][i], ints["place_id"][i], ints["year"][i], ints["month"][i],
-                                  ints["northdeg"][i], df["lat"][i], df["lon"][i], df["panoid"][i])
-            paths.append(str(img_root / "Images" / df["city_id"][i] / name))
+        rows = np.flatnonzero(keep)
+        names = [gsv_image_name(df["city_id"][i], ints["place_id"][i], ints["year"][i], ints["month"][i],
+                                ints["northdeg"][i], df["lat"][i], df["lon"][i], df["panoid"][i]) for i in rows]
+        paths.extend(str(img_root / "Images" / df["city_id"][i] / name) for i, name in zip(rows, names))
+        _check_spread(path, city, np.stack([e, nth], axis=1), ints["place_id"][keep], lat[keep], lon[keep], zone,
+                      lambda j: f"{names[j]} (data row {rows[j] + 1})")
         utm.append(np.stack([e, nth], axis=1))
         heading.append(ints["northdeg"][keep].astype(np.float64))
         place.append(ints["place_id"][keep] + ci * 10 ** 5)

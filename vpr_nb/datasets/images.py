@@ -1,7 +1,7 @@
 """Reading dataset images from disk: Pillow decoding, antialiased resizing, ImageNet normalisation.
 
 - :func:`read_image` one file -> float ``(3, H, W)`` tensor (normalised by
-  :func:`vpr_nb.evaluation.normalize_imagenet`, the package's one normalisation path);
+  :func:`vpr_nb.image_tensors.normalize_imagenet`, the package's one normalisation path);
 - :class:`ImageDataset` a :class:`torch.utils.data.Dataset` of ``(image, index)`` for a DataLoader
   (pytorch-NetVlad's database-then-queries indexing), no torchvision needed;
 - :class:`ImageArray` a lazy ``(N, H, W, 3)`` uint8 "array" that the training loop and
@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from .._checks import check_int
-from ..evaluation import normalize_imagenet
+from ..image_tensors import normalize_imagenet
 
 
 def _as_size(size) -> tuple[int, int] | None:
@@ -93,7 +93,7 @@ def read_image(path, size=None, normalize: bool = True) -> torch.Tensor:
     Pixels are scaled to [0, 1] (8-bit / 255, 16-bit grayscale / 65535), optionally resized to
     ``size`` = (H, W) with antialiased bilinear interpolation (``F.interpolate``), then normalised
     with the ImageNet statistics ``x' = (x - mean) / std`` (mean = (0.485, 0.456, 0.406),
-    std = (0.229, 0.224, 0.225)) by :func:`vpr_nb.evaluation.normalize_imagenet`, the same path as the
+    std = (0.229, 0.224, 0.225)) by :func:`vpr_nb.image_tensors.normalize_imagenet`, the same path as the
     in-memory images take. Images above :data:`MAX_IMAGE_PIXELS` are refused before decoding (a JPEG
     read with ``size`` is first decoded at a reduced scale); errors name the file.
     """

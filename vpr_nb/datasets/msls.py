@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import check_positive
-from ..evaluation import positives_within
+from ..split import positives_within
 from ._parsing import bool_column, duplicates, float_column, read_csv_columns, read_text
+from .geotags import LAT_POLE, check_latlon, check_utm, warn_isolated
 from .split import GeoSplit
 
 # mapillary_sls msls.py ``default_cities`` (also copied in gmberton's format_mapillary.py)
@@ -48,6 +49,19 @@ def _read_key_list(path) -> set[str]:
     return {Path(s).stem for s in items}
 
 
+def _check_geotags(folder: Path, keys: list[str], utm: np.ndarray, raw: dict) -> None:
+    """ValueError for an impossible UTM position of postprocessed.csv or lat/lon of raw.csv, a warning
+    for an image with no other of this side within 100 km (:mod:`vpr_nb.datasets.geotags`; one median
+    would mean nothing where a city straddles a UTM zone edge, as London the prime meridian)."""
+    post, raw_csv = folder / "postprocessed.csv", folder / "raw.csv"
+    check_utm(utm, lambda i, c: f"{post}: column {c!r}, data row {i + 1} (line {i + 2}, key {keys[i]})",
+              swap_hint="columns 'easting' and 'northing' swapped?")
+    check_latlon(float_column(raw["lat"], raw_csv, "lat"), float_column(raw["lon"], raw_csv, "lon"),
+                 lambda i, c: f"{raw_csv}: column {c!r}, data row {i + 1} (line {i + 2}, key {raw['key'][i]})",
+                 lat_limit=LAT_POLE)
+    warn_isolated(utm, str(post), lambda i: f"key {keys[i]} (data row {i + 1})", stacklevel=4)
+
+
 def _msls_side(cdir: Path, side: str, exclude_panos: bool, subtask: str | None):
     folder = cdir / side
     _, post = read_csv_columns(folder / "postprocessed.csv", _MSLS_POST)
@@ -68,6 +82,7 @@ def _msls_side(cdir: Path, side: str, exclude_panos: bool, subtask: str | None):
     pano = bool_column(raw["pano"], folder / "raw.csv", "pano")[ridx] if keys else np.zeros(0, bool)
     utm = np.stack([float_column(post["easting"], folder / "postprocessed.csv", "easting"),
                     float_column(post["northing"], folder / "postprocessed.csv", "northing")], axis=1).reshape(-1, 2)
+    _check_geotags(folder, keys, utm, raw)
     cl = []
     for i, v in enumerate(post["unique_cluster"]):
         try:
@@ -149,7 +164,8 @@ def load_msls(root, *, cities=None, exclude_panos: bool = True, val_subset: str 
 
     A city left without queries or database images (header-only CSVs, only panoramas, nothing in the
     subset) is named in a warning; no usable database image or query in any city, a key listed twice
-    in a CSV, or a CSV that is not UTF-8 raise ValueError naming the file.
+    in a CSV, a CSV that is not UTF-8 or an impossible geotag (:mod:`vpr_nb.datasets.geotags`) raise
+    ValueError naming the file; an image far from all others of its city side is named in a warning.
     """
     root = Path(root)
     if not root.is_dir():

@@ -3,7 +3,8 @@
 By default the +-1 frame convention of the VPR-Bench / GSV-Cities "Nordland*" test set
 (``protocol="1frame"``), or the gmberton 25 m = +-10 frames one (``protocol="25m"``). Positions are
 dummy UTM coordinates along one line, spaced so that the radius search of every other dataset gives
-exactly the frame tolerance. Recall@N over all queries (VPR-Bench).
+exactly the frame tolerance. Recall@N over all queries (VPR-Bench). Nordland carries no geotag (frame
+numbers only), so :mod:`vpr_nb.datasets.geotags` has nothing to check here.
 """
 from __future__ import annotations
 
@@ -13,8 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import check_int
-from ._parsing import list_images
-from .gmberton import gmberton_split_dir
+from ._parsing import gmberton_split_dir, list_images
 from .split import GeoSplit
 
 # Nordland: gmberton's download_nordland.py places frames on a line, DISTANCE = 25 m / (frames + 0.5)

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ._parsing import duplicates
+from .geotags import CITY_SPAN_M, check_utm, warn_far_from_median
 from .split import GeoSplit, check_image_files
 
 _PITTS_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages", "numQueries",
@@ -66,6 +67,18 @@ def _mat_utm(value, n: int, path, fld: str) -> np.ndarray:
     return np.ascontiguousarray(utm)
 
 
+def _check_geotags(path: Path, db_names: list, db_utm: np.ndarray, q_names: list, q_utm: np.ndarray) -> None:
+    """ValueError for an impossible UTM position (:func:`~vpr_nb.datasets.geotags.check_utm`), a warning for
+    an image more than :data:`~vpr_nb.datasets.geotags.CITY_SPAN_M` from the dataset's median (one city)."""
+    for fld, utm, names in (("2 (utmDb)", db_utm, db_names), ("4 (utmQ)", q_utm, q_names)):
+        check_utm(utm, lambda i, _, fld=fld, names=names: f"{path}: dbStruct field {fld}, entry {i} ({names[i]})",
+                  swap_hint=f"{fld[3:-1]} rows swapped? (the first row must hold the eastings, the second the "
+                            f"northings)")
+    names = db_names + [f"queries_real/{n}" for n in q_names]
+    warn_far_from_median(np.concatenate([db_utm, q_utm]), np.full(len(names), "Pittsburgh"), CITY_SPAN_M,
+                         f"{path}", lambda i: names[i], what="city", stacklevel=4)
+
+
 def load_pitts(mat_path, *, images_root=None, check_files: bool = True) -> GeoSplit:
     """Load a NetVLAD ``dbStruct`` ``.mat`` (Pitts30k/250k train/val/test), read by position.
 
@@ -74,6 +87,8 @@ def load_pitts(mat_path, *, images_root=None, check_files: bool = True) -> GeoSp
     9 nonTrivPosDistSqThr (100 m^2, i.e. 10 m training positives). ``pos_radius = posDistThr``,
     ``train_pos_radius = sqrt(nonTrivPosDistSqThr)``. Note the original MATLAB training positives
     also exclude database images within 1 m (``1 < d^2 <= nonTrivPosDistSqThr``); pytorch-NetVlad does not.
+    An impossible UTM position (e.g. utmDb's rows swapped) raises ValueError naming the entry; an image
+    more than 100 km from the others' median is named in a warning (:mod:`vpr_nb.datasets.geotags`).
     """
     from scipy.io import loadmat
 
@@ -113,6 +128,7 @@ def load_pitts(mat_path, *, images_root=None, check_files: bool = True) -> GeoSp
                              f"at entries {[r - 1 for r in rows]}; each image must be listed once")
     db_utm = _mat_utm(fields[2], len(db_names), path, "2 (utmDb)")
     q_utm = _mat_utm(fields[4], len(q_names), path, "4 (utmQ)")
+    _check_geotags(path, db_names, db_utm, q_names, q_utm)
     num_db = _mat_scalar(fields[5], path, "5 (numImages)")
     num_q = _mat_scalar(fields[6], path, "6 (numQueries)")
     pos_thr = _mat_scalar(fields[7], path, "7 (posDistThr)")

@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from .._checks import check_int
+from .geotags import LAT_LIMIT, LON_LIMIT
 
 _WGS84_A = 6378137.0
 _WGS84_F = 1 / 298.257223563
@@ -43,10 +44,11 @@ def latlon_to_utm(lat, lon, zone: int | None = None) -> tuple[np.ndarray, np.nda
     if not (np.isfinite(lat).all() and np.isfinite(lon).all()):
         first = int(np.flatnonzero(~(np.isfinite(lat) & np.isfinite(lon)).ravel())[0])
         raise ValueError(f"lat/lon contain NaN or inf (first at flat index {first})")
-    bad = np.flatnonzero(((np.abs(lat) > 84.0) | (np.abs(lon) > 180.0)).ravel())
+    bad = np.flatnonzero(((np.abs(lat) > LAT_LIMIT) | (np.abs(lon) > LON_LIMIT)).ravel())
     if len(bad):
         i = int(bad[0])
-        raise ValueError(f"lat must be within [-84, 84] and lon within [-180, 180] degrees for UTM; {len(bad)} "
+        raise ValueError(f"lat must be within [-{LAT_LIMIT:g}, {LAT_LIMIT:g}] and lon within [-{LON_LIMIT:g}, "
+                         f"{LON_LIMIT:g}] degrees for UTM; {len(bad)} "
                          f"position(s) are not, first at flat index {i}: lat={lat.ravel()[i]:g}, lon={lon.ravel()[i]:g}")
     if zone is None:
         zone = utm_zone(float(lat.mean()), float(lon.mean()))

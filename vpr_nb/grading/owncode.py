@@ -7,9 +7,11 @@ Two forms of one rule:
   magics turned into calls first) and refuses imports outside a short list of numeric modules, the
   library (``vpr_nb``) by any name the setup cells bound to it, names an exercise forbids (such as
   ``TripletMarginLoss``), the built-ins that reach code or files indirectly (``__import__``, ``exec``,
-  ``eval``, ``getattr``, ``open``, ``globals``, ``get_ipython`` ...), dunder attributes that walk object
-  internals (``__globals__``, ``__subclasses__`` ...) and strings naming the library. What it cannot see
-  it cannot be fooled by: the student's process never decides whether the rule holds.
+  ``eval``, ``getattr``, ``open``, ``globals``, ``get_ipython`` ...), numpy's and torch's own file access
+  (:data:`FILE_ACCESS`: ``np.fromfile``, ``.tofile``, ``np.savetxt``, ``np.load``, ``torch.save`` ...,
+  as an attribute or imported by name), dunder attributes that walk object internals (``__globals__``,
+  ``__subclasses__`` ...) and strings naming the library. What it cannot see it cannot be fooled by: the
+  student's process never decides whether the rule holds.
 * :func:`library_references` / :func:`assert_own_code` (for a kernel: the student's own check, and
   nbgrader's autograde, which runs the test cells in the student's kernel): follows the live function's
   code objects, globals, closures and defaults.
@@ -28,9 +30,14 @@ FORBIDDEN_BUILTINS = frozenset({
     "__import__", "eval", "exec", "compile", "open", "globals", "locals", "vars", "getattr", "setattr",
     "delattr", "breakpoint", "input", "help", "exit", "quit", "memoryview", "get_ipython", "__builtins__",
     "__loader__", "__spec__", "__file__"})
+FILE_ACCESS = frozenset({   # numpy's and torch's functions and methods that read or write files by name
+    "fromfile", "tofile", "savetxt", "loadtxt", "genfromtxt", "fromregex", "memmap", "open_memmap", "save",
+    "savez", "savez_compressed", "load", "dump", "from_file", "DataSource", "npyio", "serialization",
+    "load_library", "ctypeslib", "open", "package"})
 FORBIDDEN_ATTRIBUTES = frozenset({   # ways from numpy/torch to modules, files and frames
     "sys", "modules", "os", "builtins", "importlib", "import_module", "subprocess", "ctypes", "system", "popen",
-    "hub", "load", "f_globals", "f_locals", "f_back", "gi_frame", "tb_frame", "func_globals"})
+    "hub", "f_globals", "f_locals", "f_back", "gi_frame", "tb_frame", "func_globals", "attrgetter",
+    "methodcaller"}) | FILE_ACCESS
 SAFE_DUNDERS = frozenset({
     "__init__", "__call__", "__len__", "__getitem__", "__setitem__", "__iter__", "__next__", "__repr__",
     "__str__", "__eq__", "__ne__", "__lt__", "__le__", "__gt__", "__ge__", "__hash__", "__add__", "__radd__",
@@ -99,9 +106,14 @@ def source_violations(sources, package: str = "vpr_nb", forbid_names=(), setup_s
                         found.append(f"imports {a.name} (line {line})")
             elif isinstance(node, ast.ImportFrom):
                 mod = "." * node.level + (node.module or "")
+                parts = set(mod.split("."))
                 if node.level or mod.split(".")[0] not in ALLOWED_IMPORTS:
                     found.append(f"imports from {mod} (line {line})")
-                found.extend(f"uses {a.name} (line {line})" for a in node.names if a.name in forbid)
+                elif parts & FORBIDDEN_ATTRIBUTES:
+                    found.append(f"imports from {mod}{_file_note(parts)} (line {line})")
+                found.extend(f"imports * from {mod} (name what you use) (line {line})" if a.name == "*" else
+                             f"uses {a.name}{_file_note({a.name})} (line {line})" for a in node.names
+                             if a.name in forbid or a.name in FORBIDDEN_ATTRIBUTES or a.name == "*")
             elif isinstance(node, ast.Name):
                 if node.id == package or node.id in lib:
                     found.append(f"uses {node.id}, which is {package}'s (line {line})")
@@ -109,12 +121,16 @@ def source_violations(sources, package: str = "vpr_nb", forbid_names=(), setup_s
                     found.append(f"uses {node.id} (line {line})")
             elif isinstance(node, ast.Attribute):
                 if node.attr in forbid or node.attr in FORBIDDEN_ATTRIBUTES:
-                    found.append(f"uses .{node.attr} (line {line})")
+                    found.append(f"uses .{node.attr}{_file_note({node.attr})} (line {line})")
                 elif node.attr.startswith("__") and node.attr.endswith("__") and node.attr not in SAFE_DUNDERS:
                     found.append(f"reaches into .{node.attr} (line {line})")
             elif isinstance(node, ast.Constant) and isinstance(node.value, str) and package in node.value:
                 found.append(f"names {package!r} in the string {node.value[:40]!r} (line {line})")
     return list(dict.fromkeys(found))
+
+
+def _file_note(names) -> str:
+    return ", which accesses files" if set(names) & FILE_ACCESS else ""
 
 
 def own_code_message(name: str, found, package: str = "vpr_nb", forbid_names=()) -> str:

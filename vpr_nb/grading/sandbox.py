@@ -1,24 +1,28 @@
 """Run an untrusted program in a throwaway folder, with limits, and leave nothing of it running.
 
-Two backends (``VPR_NB_SANDBOX=bwrap|process`` forces one; by default the first that works here):
+Two backends (:func:`vpr_nb.grading.isolation.choose_backend` picks one for a grading; ``VPR_NB_SANDBOX``
+forces one):
 
-* ``bwrap`` (Debian's ``bubblewrap``): a new mount, PID, network, IPC and UTS namespace. The program sees
-  a read-only system (``/usr``, ``/etc``, the Python installation, the ``vpr_nb`` package and its
-  ``data_fixtures/`` and nothing else of the machine: no instructor notebooks, no other submission, no
-  grades file, no home folder),
-  an empty ``/tmp``, no network, and its throwaway folder as the only writable place. As root it runs as
-  a fresh user id per submission, without capabilities. When its first process ends, or bwrap or the
-  grader dies (``--die-with-parent``), the kernel kills every process of the PID namespace, including
-  ones that called ``setsid`` or double-forked.
-* ``process`` (no OS sandbox, said so in every report): the program runs in its own session with the
-  same limits; as root, and where the Python installation is readable by other users, under a fresh
-  user id per submission (it then cannot write the instructor's files or signal the grader); leftovers
-  are found by that user id and by a token in their environment. It does not hide files the grader's
-  user can read, and without a separate user id a submission can write or kill what the grader can.
+* ``bwrap`` (Debian's ``bubblewrap``), the only sandbox: a new mount, PID, network, IPC and UTS namespace.
+  The program sees a read-only system (``/usr``, ``/etc``, the Python installation, the ``vpr_nb`` package
+  and the committed results) and nothing else of the machine: no instructor notebooks, no other
+  submission, no grades file, no home folder; a teacher's path that one of those read-only folders would
+  show (``private``: the instructor notebooks and their folder, the class folder, the grades file's
+  folder) is covered (an empty file or folder in its place), or grading refuses to start. It gets an
+  empty private ``/tmp``, no network, and its throwaway folder as the only writable place of the
+  machine. As root it runs as a fresh user id per submission, without capabilities. When its first
+  process ends, or bwrap or the grader dies (``--die-with-parent``), the kernel kills every process of
+  the PID namespace, including ones that called ``setsid`` or double-forked.
+* ``process`` (no OS sandbox; only for work the teacher trusts, ``trusted=True`` / ``--trusted``, and
+  said so on every report): the program runs in its own session with the same limits; as root, and where
+  the Python installation is readable by other users, under a fresh user id per submission; leftovers
+  are found by that user id and by a token in their environment. It hides no file the grader's user can
+  read, and without a separate user id a submission can write or kill what the grader can.
 
-Both apply the limits of :class:`Limits` (CPU seconds, address space, processes, file size; through
-``prlimit``) and a wall-clock limit, after which the whole process tree is killed; both then kill every
-process that is still alive and belongs to the run (leftovers are counted in :class:`Outcome`).
+Without a working bubblewrap and without ``trusted``, grading refuses (:mod:`vpr_nb.grading.isolation`).
+Both backends apply the limits of :class:`Limits` (CPU seconds, address space, processes, file size;
+through ``prlimit``) and a wall-clock limit, after which the whole process tree is killed; both then kill
+every process that is still alive and belongs to the run (leftovers are counted in :class:`Outcome`).
 """
 from __future__ import annotations
 
@@ -114,7 +118,49 @@ def python_command() -> list[str]:
     return [sys.executable, "-I", "-c", boot]
 
 
-def _bwrap_args(workdir: Path, uid: int | None) -> list[str]:
+_TOPS = ("bin", "sbin", "lib", "lib32", "lib64", "libx32")    # merged-/usr links or real folders
+
+
+def _shown() -> list[Path]:
+    """The machine's folders a bwrap run sees (read-only): the system and :func:`_python_roots`."""
+    tops = [Path("/") / t for t in _TOPS if (Path("/") / t).is_dir() and not (Path("/") / t).is_symlink()]
+    return tops + [Path("/usr"), Path("/etc")] + [r for r in _python_roots()
+                                                  if not any(r.is_relative_to(m) for m in ("/usr", "/etc"))]
+
+
+def _covers(private, workdir: Path) -> list[str]:
+    """bwrap arguments that cover each ``private`` path (the teacher's: instructor notebooks, folders of
+    submissions and grades) that a read-only folder of :func:`_shown` would show: an empty file over a file,
+    an empty tmpfs over a folder.
+
+    Raises:
+        ValueError: a private folder holds a folder the run must see (the package, the Python
+            installation, the results, the run's own folder), so it cannot be covered.
+    """
+    shown, args, covered = _shown(), [], []
+    for path in sorted({Path(p).resolve() for p in private}, key=lambda p: len(p.parts)):   # folders first
+        if (not path.exists() or not any(path.is_relative_to(r) for r in shown)
+                or any(path.is_relative_to(c) for c in covered)):
+            continue
+        if not path.is_dir():
+            args += ["--ro-bind", "/dev/null", str(path)]
+            continue
+        inner = [r for r in shown + [workdir] if r.is_relative_to(path)]
+        if inner:
+            raise ValueError(f"{path} would be visible to every submission: it holds {inner[0]}, which the sandbox "
+                             "shows read-only; keep the instructor notebooks, the submissions and the grades file "
+                             "in another folder")
+        args += ["--tmpfs", str(path)]
+        covered.append(path)
+    return args
+
+
+def check_private(private) -> None:
+    """Refuse (ValueError) before grading starts when a ``private`` path could not be hidden from a bwrap run."""
+    _covers(private, Path(tempfile.gettempdir()).resolve() / "vpr_nb_grade_")
+
+
+def _bwrap_args(workdir: Path, uid: int | None, private=()) -> list[str]:
     args = ["bwrap", "--die-with-parent", "--new-session", "--unshare-pid", "--unshare-net", "--unshare-ipc",
             "--unshare-uts", "--unshare-cgroup-try"]
     if uid is None:                       # not root: an unprivileged user namespace
@@ -128,21 +174,22 @@ def _bwrap_args(workdir: Path, uid: int | None) -> list[str]:
                 made.add(a)
                 args.extend(["--perms", "0755", "--dir", a])
 
-    for top in ("bin", "sbin", "lib", "lib32", "lib64", "libx32"):   # merged-/usr links or real folders
+    for top in _TOPS:
         p = Path("/") / top
         if p.is_symlink():
             args.extend(["--symlink", os.readlink(p), str(p)])
         elif p.is_dir():
             args.extend(["--ro-bind", str(p), str(p)])
-    args += ["--ro-bind", "/usr", "/usr", "--ro-bind", "/etc", "/etc"]
-    made.update({"/usr", "/etc"})
+    # /tmp before the Python roots: one of them under /tmp (VPR_NB_RESULTS_DIR) is bound into the tmpfs, not hidden by it
+    args += ["--ro-bind", "/usr", "/usr", "--ro-bind", "/etc", "/etc", "--proc", "/proc", "--dev", "/dev",
+             "--perms", "1777", "--tmpfs", "/tmp"]
+    made.update({"/usr", "/etc", "/proc", "/dev", "/tmp"})
     for root in _python_roots():
         if not any(root.is_relative_to(m) for m in ("/usr", "/etc")):
             parents(root)
             args.extend(["--ro-bind", str(root), str(root)])
             made.add(str(root))
-    args += ["--proc", "/proc", "--dev", "/dev", "--perms", "1777", "--tmpfs", "/tmp"]
-    made.add("/tmp")
+    args += _covers(private, workdir)     # after the binds they cover
     parents(workdir)
     args += ["--bind", str(workdir), str(workdir), "--chdir", str(workdir)]
     if uid is not None:                   # root: the runner drops to the submission's uid itself
@@ -176,33 +223,6 @@ def backend_works(backend: str) -> bool:
 def process_uid_switch_works() -> bool:
     """Whether the process backend can run the grader's Python under another user id (root only)."""
     return _is_root() and sys.platform.startswith("linux") and _probe("process", True)
-
-
-def default_backend() -> str:
-    """``$VPR_NB_SANDBOX`` if set, else ``bwrap`` where it works, else ``process``."""
-    forced = os.environ.get(ENV_BACKEND, "").strip()
-    if forced:
-        if forced not in BACKENDS:
-            raise ValueError(f"{ENV_BACKEND}={forced!r}: use one of {BACKENDS}")
-        if not backend_works(forced):
-            raise ValueError(f"{ENV_BACKEND}={forced}, but it does not work on this machine (is bubblewrap installed? "
-                             "sudo apt-get install -y bubblewrap)")
-        return forced
-    return "bwrap" if backend_works("bwrap") else "process"
-
-
-def describe(backend: str) -> str:
-    """One line on what the backend protects, for the grader's report."""
-    if backend == "bwrap":
-        who = "a separate user id per submission" if _is_root() else "the grader's user id (not root)"
-        return (f"OS sandbox (bubblewrap): read-only system, no network, only its throwaway folder visible and "
-                f"writable, own PID namespace, {who}")
-    why = "" if backend_works("bwrap") else " (bubblewrap is missing or does not work here: sudo apt-get install -y bubblewrap)"
-    if process_uid_switch_works():
-        return (f"no OS sandbox{why}: own session, limits, leftovers killed, a separate user id per submission; "
-                "files readable by every user stay readable to submissions")
-    return (f"no OS sandbox{why} and no separate user id: limits and leftover cleanup only; a submission can read "
-            "and write what the grader can, and signal it")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -366,20 +386,23 @@ def new_uid(backend: str) -> int | None:
 
 
 def run(args: list[str], workdir: Workdir, limits: Limits = Limits(), backend: str | None = None,
-        env: dict | None = None) -> Outcome:
-    """Run the runner (``python -I -m vpr_nb.grading.runner`` + ``args``) in ``workdir`` under ``backend``.
+        env: dict | None = None, private=()) -> Outcome:
+    """Run the runner (``python -I -m vpr_nb.grading.runner`` + ``args``) in ``workdir`` under ``backend``
+    (default ``bwrap``; :func:`vpr_nb.grading.isolation.choose_backend` picks it for a grading), with the
+    ``private`` paths hidden (bwrap).
 
     The program's stdout and stderr go to a file outside ``workdir`` (never to a pipe that a leftover
     child could hold open), the wall-clock limit is enforced here, and every process of the run is gone
     when this returns.
     """
-    backend = backend or default_backend()
+    backend = backend or "bwrap"
     if not backend_works(backend):
         raise ValueError(f"the sandbox backend {backend!r} does not work on this machine")
-    return _run(args, workdir, limits, backend, env)
+    return _run(args, workdir, limits, backend, env, private)
 
 
-def _run(args: list[str], workdir: Workdir, limits: Limits, backend: str, env: dict | None = None) -> Outcome:
+def _run(args: list[str], workdir: Workdir, limits: Limits, backend: str, env: dict | None = None,
+         private=()) -> Outcome:
     uid = workdir.uid
     token = secrets.token_hex(12)
     full_env = {"PATH": "/usr/bin:/bin", "HOME": str(workdir.path), "LANG": "C.UTF-8", "MPLBACKEND": "Agg",
@@ -394,7 +417,7 @@ def _run(args: list[str], workdir: Workdir, limits: Limits, backend: str, env: d
     runner_args = list(args)
     kw: dict = {}
     if backend == "bwrap":
-        cmd = prefix + _bwrap_args(workdir.path, uid) + python_command() + runner_args
+        cmd = prefix + _bwrap_args(workdir.path, uid, private) + python_command() + runner_args
         if uid is not None:
             cmd += ["--uid", str(uid)]
     else:

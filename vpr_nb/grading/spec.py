@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from .data import DataError, compare, encode, roundtrip
+from .owncode import assert_own_code
 
 NO_EXPECT = object()
 
@@ -138,7 +139,6 @@ def _run_in_kernel(spec: Check, namespace: dict) -> None:
         raise AssertionError(f"{spec.function} is not defined: run your solution cell first")
     target = namespace[spec.function]
     if spec.own_code and spec.call:
-        from .owncode import assert_own_code
         assert_own_code(target, forbid_names=spec.forbid)
     for case in spec.cases:
         value = target(*case.args, **case.kwargs) if spec.call else target

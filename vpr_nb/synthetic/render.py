@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .conditions import condition_params, stack_conditions
+from .hashing import hash01
 from .layout import FENCE, TREE, WALL, Scene, rgb
 
 if TYPE_CHECKING:
@@ -65,17 +66,6 @@ TRUNK_COLOUR = rgb(0.35, 0.25, 0.18)
 LIT_WINDOW_COLOUR, DARK_WINDOW_COLOUR = rgb(1.0, 0.85, 0.45), rgb(0.12, 0.16, 0.22)
 SNOW_COLOUR = rgb(0.93, 0.94, 0.97)
 SNOWY_SKYLINE_COLOUR = rgb(0.9, 0.9, 0.95)
-
-
-def hash01(*ints) -> np.ndarray:
-    """Deterministic per-element pseudo random numbers in [0, 1) from integer arrays."""
-    h = np.uint64(1469598103934665603)
-    out = np.full(np.broadcast(*ints).shape, h, dtype=np.uint64)
-    for x in ints:
-        out ^= np.asarray(x).astype(np.int64).astype(np.uint64)
-        out *= np.uint64(1099511628211)
-        out ^= out >> np.uint64(29)
-    return (out % np.uint64(1 << 24)).astype(np.float64) / float(1 << 24)
 
 
 def _visible_segments(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from ..cameras import Cameras, split_bands
 from ..layout import (FENCE, MIN_WALL_ALBEDO, POLE, WALL, Scene, SegmentStore, facade_styles, finish_scene, rgb,
                       tree_segments)
-from ..render import hash01
+from ..hashing import hash01
 from .base import WorldKind
 
 TRACK_PAD = 200                    # curvature noise is drawn for num_frames + 200 frames, then smoothed

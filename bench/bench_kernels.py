@@ -1,0 +1,125 @@
+"""What the pinned CPU kernels (vpr_nb.kernels) cost: pinned / native CPU time, per layer and for a course fine-tune.
+
+The same work runs in two child processes started one after the other, one with the pinned environment and
+one with the processor's own kernels, alternating (pinned, native, native, pinned) so that drifting load hits
+both alike. Each child measures process CPU time on one torch thread:
+
+* **layers** (one training batch of the course recipe, 112 images of 32x48 pixels, median of 15 repeats):
+  the course backbone's frozen blocks (forward), its trainable 1x1 projection (forward + backward), and the
+  NetVLAD-16 and SALAD heads on its 8x12 feature map (forward + backward);
+* **fine-tune**: ``vpr_nb.recipe.fine_tune`` of NetVLAD, 4 epochs (early stopping off) on the tiny city world.
+
+Printed: each part's CPU seconds both ways and the ratio pinned / native (the issue's target for a course
+fine-tune: <= 1.5). Also which convolution path runs (NNPACK or not) in the pinned child.
+
+    python bench/bench_kernels.py            # layers + fine-tune
+    python bench/bench_kernels.py --layers   # layers only (about a minute)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+from vpr_nb.kernels import PINNED, pinned_environ
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def child(parts: list[str]) -> dict:
+    """Runs inside a child process: CPU seconds of each part."""
+    import dataclasses
+
+    import torch
+
+    from vpr_nb.aggregation import SALAD, NetVLAD
+    from vpr_nb.kernels import apply_in_process, is_pinned
+    from vpr_nb.pretrain import course_backbone
+    from vpr_nb.recipe import RECIPE, Method, fine_tune
+    from vpr_nb.synthetic import make_dataset
+
+    apply_in_process()
+    torch.set_num_threads(1)
+    out = {"pinned": is_pinned(), "nnpack": bool(torch.backends.nnpack.enabled)}
+
+    def timed(fn, repeats=15):
+        fn()
+        cpu = []
+        for _ in range(repeats):
+            t = time.process_time()
+            fn()
+            cpu.append(time.process_time() - t)
+        return statistics.median(cpu)
+
+    if "layers" in parts:
+        torch.manual_seed(0)
+        backbone = course_backbone(trainable_blocks=1)
+        frozen, trainable = backbone.features[:backbone.num_frozen], backbone.features[backbone.num_frozen:]
+        x = torch.randn(112, 3, 32, 48)
+        with torch.no_grad():
+            mid = frozen(x)
+        out["frozen blocks, forward"] = timed(lambda: frozen(x).sum())
+
+        def projection():
+            trainable.zero_grad()
+            trainable(mid).sum().backward()
+        out["1x1 projection, forward + backward"] = timed(projection)
+        fmap = trainable(mid).detach().requires_grad_(True)
+        channels = fmap.shape[1]
+        token = fmap.mean((2, 3)).detach()
+        heads = (("NetVLAD-16", NetVLAD(num_clusters=16, dim=channels), fmap),
+                 ("SALAD", SALAD(num_channels=channels, num_clusters=16, cluster_dim=32, token_dim=64,
+                                 hidden_dim=64), (fmap, token)))
+        for name, head, inputs in heads:
+            def step(head=head, inputs=inputs):
+                head.zero_grad()
+                head(inputs).sum().backward()
+            out[f"{name} head, forward + backward"] = timed(step)
+    if "fine-tune" in parts:
+        ds = make_dataset("city", seed=0, size="tiny")
+        recipe = dataclasses.replace(RECIPE, max_epochs=4, patience=4)
+        t = time.process_time()
+        fine_tune(Method("netvlad", "netvlad"), ds.train, ds.val, recipe, seed=0, lr=RECIPE.lr)
+        out["NetVLAD fine-tune, 4 epochs"] = time.process_time() - t
+    return out
+
+
+def run_child(env: dict, parts: list[str]) -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", ",".join(parts)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
+    if proc.returncode != 0:
+        raise SystemExit(f"child failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--layers", action="store_true", help="the layers only")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.child.split(","))))
+        return 0
+    parts = ["layers"] if args.layers else ["layers", "fine-tune"]
+    native_env = {k: v for k, v in os.environ.items() if k not in PINNED}
+    runs = {True: [], False: []}
+    for pinned in (True, False, False, True):
+        runs[pinned].append(run_child(pinned_environ(native_env) if pinned else native_env, parts))
+    print(f"pinned child: pinned={runs[True][0]['pinned']}, NNPACK enabled={runs[True][0]['nnpack']}; "
+          f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    for key in runs[True][0]:
+        if key in ("pinned", "nnpack"):
+            continue
+        p = statistics.mean(r[key] for r in runs[True])
+        n = statistics.mean(r[key] for r in runs[False])
+        unit, scale = ("ms", 1e3) if p < 1 else ("s", 1.0)
+        print(f"{key:40s} pinned {p * scale:8.2f} {unit}  native {n * scale:8.2f} {unit}  pinned/native {p / n:5.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
