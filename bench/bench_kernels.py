@@ -14,6 +14,7 @@ fine-tune: <= 1.5). Also which convolution path runs (NNPACK or not) in the pinn
 
     python bench/bench_kernels.py            # layers + fine-tune
     python bench/bench_kernels.py --layers   # layers only (about a minute)
+    python bench/bench_kernels.py --no-nnpack  # the same with NNPACK off (a candidate for cheaper pins)
 """
 from __future__ import annotations
 
@@ -43,8 +44,11 @@ def child(parts: list[str]) -> dict:
     from vpr_nb.synthetic import make_dataset
 
     apply_in_process()
+    if "no-nnpack" in parts:        # the candidate fix: stride-1 convolutions as an unfold + one matrix product
+        torch.backends.nnpack.set_flags(False)
     torch.set_num_threads(1)
-    out = {"pinned": is_pinned(), "nnpack": bool(torch.backends.nnpack.enabled)}
+    # NNPACK runs stride-1 convolutions of >= 16 images where it is available and enabled (torch's own flag)
+    out = {"pinned": is_pinned(), "nnpack": torch.backends.nnpack.is_available() and torch._C._get_nnpack_enabled()}
 
     def timed(fn, repeats=15):
         fn()
@@ -99,12 +103,15 @@ def run_child(env: dict, parts: list[str]) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--layers", action="store_true", help="the layers only")
+    ap.add_argument("--no-nnpack", action="store_true",
+                    help="switch NNPACK off in both children (torch.backends.nnpack.set_flags(False)): what the "
+                         "pinned path would cost without it (its numbers differ from the stored ones)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(child(args.child.split(","))))
         return 0
-    parts = ["layers"] if args.layers else ["layers", "fine-tune"]
+    parts = (["layers"] if args.layers else ["layers", "fine-tune"]) + (["no-nnpack"] if args.no_nnpack else [])
     native_env = {k: v for k, v in os.environ.items() if k not in PINNED}
     runs = {True: [], False: []}
     for pinned in (True, False, False, True):

@@ -441,14 +441,34 @@ record("00_synthetic_world", {
 #
 # 1. **Radius.** Recompute the city positives with $r = 10$ m and $r = 50$ m (`ds.positives(radius)`).
 #    How does the mean number of positives scale with $r$, and why roughly like $r$ rather than $r^2$?
+#    <details><summary>Hint</summary><code>np.mean([len(p) for p in city_test.positives(10.0)])</code>, and the
+#    same with 50.0. The database cameras stand only on the streets, every 10 m, in 4 headings: how many camera
+#    positions does a disc of radius $r$ cover on one straight street, and what changes once the disc reaches a
+#    crossing or a parallel street?</details>
 # 2. **Parallax.** With Eq. (3), how far must the camera move for a facade 10 m away to shift by half
 #    the image width? And the skyline at 1000 m? Check the first against the route frames above.
+#    <details><summary>Hint</summary>Solve Eq. (3) for $t$ with $\Delta u = W/2 = 24$ px and the printed
+#    $f_{px} = 24.0$ px; the table's columns for $Z = 10$ m and $Z = 1000$ m check your answer. The route's
+#    camera is turned 45° to the side, so about 3.5 m of each 5 m step between frames is sideways to its view:
+#    see how far a house near the track moves from one frame to the next.</details>
 # 3. **Aliasing.** Regenerate the city with `num_facade_types=2` and with `num_facade_types=40`, rerun the
 #    aliasing cell and compare the cosine of the most alike far-apart pair. Which setting makes VPR harder?
+#    <details><summary>Hint</summary><code>city = make_dataset("city", seed=0, size=SIZE, num_facade_types=2)</code>,
+#    then re-run the cosine-vs-distance cell (it makes <code>descs</code> and <code>sub</code>) and the aliasing
+#    cell, and read the printed cosine of the most alike pair (0.965 with the default 10 styles). One pair is a
+#    single sample; notebook 01's knob sweep measures the same knob in Recall@1. Regenerate the default city
+#    afterwards.</details>
 # 4. **Conditions.** Generate `make_dataset("city", condition_strength=0.0)`: what do the queries look
 #    like now, and which difficulties remain?
+#    <details><summary>Hint</summary><code>c0 = make_dataset("city", seed=0, size=SIZE, condition_strength=0.0)</code>,
+#    then <code>plots.condition_grid(c0.test, per_condition=8, seed=0)</code>: compare each query row with row 0,
+#    the database condition. The knob table above lists what <code>condition_strength</code> leaves alone.</details>
 # 5. **Splits.** Why would randomly assigning images to train/test (instead of geographic bands) give an
 #    over-optimistic test score?
+#    <details><summary>Hint</summary>With random assignment, a test query's place would also be photographed by
+#    training images a few metres away (the cosine table above: images less than 15 m apart are the most
+#    alike). What could a model that memorised its training images answer for that query, and would that work
+#    in a city it has never seen?</details>
 #
 # ## Takeaways
 #
@@ -462,7 +482,30 @@ record("00_synthetic_world", {
 #   default route, with roadside objects and a sideways camera, for 0.16 (the near-duplicate printout).
 # * Every difficulty knob sits in `WorldConfig`; splits are geographically disjoint; the same seed gives
 #   the same world. Notebook 01 turns these images into descriptors and measures Recall@N.
+
+# %% [markdown]
+# ## Self-check
 #
+# 1. A city test query has 29.31 positives on average. Why do only a few of the positives in the grid of a
+#    query and its positives share content with it?
+#    <details><summary>Answer</summary>Positives are defined by geotag alone, Eq. (1): every database image
+#    within 25 m, taken in 4 headings every 10 m. Only those that look roughly the query's way (within 45°, the
+#    framed ones) see the same facades; the others look down the street or at the other side.</details>
+# 2. Raw-pixel cosines between images of the same heading are about 0.85 whether their cameras are 20 m or
+#    500 m apart. Why, and what does the centred version show?
+#    <details><summary>Answer</summary>Every image shares the same layout of sky, facades and road, which
+#    dominates the raw cosine. Subtracting the mean database image removes that shared part: the centred cosine
+#    falls from 0.258 (0–5 m) to 0.101 (5–15 m) and to about 0, the level of unrelated pairs, from 15 m on. Beyond
+#    a few tens of metres pixels alone cannot tell the same place from another.</details>
+# 3. On the route without near content, the same-season frame 5 m ahead is closer in raw pixels than the
+#    frame's winter query for 0.910 of the test frames; on the default route for 0.164. What does that mean for
+#    a training loss, and what makes the difference?
+#    <details><summary>Answer</summary>Without near content the frame 5 m ahead is a near-duplicate: a loss that
+#    treats it as a negative pushes apart two images that differ less than a query and its positive. The default
+#    route has roadside objects every metre and a camera turned 45° to the side, so near content sweeps across
+#    the image and a few metres do change it (parallax, Eq. 3).</details>
+
+# %% [markdown]
 # ## References
 #
 # * S. Lowry, N. Sünderhauf, P. Newman, J. J. Leonard, D. Cox, P. Corke, M. J. Milford. *Visual Place

@@ -333,14 +333,39 @@ record("01_retrieval_and_recall", {
 #
 # 1. **Cosine vs L2.** Show numerically that without L2 normalisation, ranking by inner product and by L2
 #    distance can disagree (take two database vectors of different lengths).
+#    <details><summary>Hint</summary>Eq. (2) drops $\lVert d \rVert^2$ only because it is 1 for every database
+#    vector. Take the query <code>q = np.array([[1.0, 0.0]])</code>, a short vector pointing its way and a long
+#    one at 45°, e.g. <code>db = np.array([[0.9, 0.0], [3.0, 3.0]])</code>, and rank them with
+#    <code>q @ db.T</code> (largest first) and with <code>retrieve_by_hand(db, q, 2)</code> (smallest squared
+#    distance first).</details>
 # 2. **Recall@N by hand, differently.** Rewrite `recall_by_hand` with the rank of the *first* positive of
 #    each query, and derive R@N for every N at once from the histogram of those ranks.
+#    <details><summary>Hint</summary>For query <code>i</code>, <code>hits = np.isin(idx[i], positives[i])</code>;
+#    if <code>hits.any()</code>, <code>np.argmax(hits)</code> is the (0-based) rank of its first positive,
+#    otherwise give it rank <code>K</code>. R@N is then the share of ranks below N,
+#    <code>np.cumsum(np.bincount(ranks, minlength=K + 1))[N - 1] / len(ranks)</code>, and must reproduce the
+#    printed <code>{1: 0.226, 5: 0.604, 10: 0.761, 20: 0.887}</code> from <code>idx_hand</code> and
+#    <code>pos_hand</code>.</details>
 # 3. **Radius.** Evaluate the raw-pixel baseline with $r = 10$ m and $r = 50$ m. Why does R@1 grow with
 #    $r$, and why is a fixed $r$ essential when comparing methods across papers?
+#    <details><summary>Hint</summary>Keep the raw-pixel ranking <code>idx_lib</code> and change only the
+#    positives: <code>recall_at_n(idx_lib, positives_within(city.db_utm, city.q_utm, 10.0), NS)</code>, then
+#    50.0. The retrieval does not change, only which answers count as correct.</details>
 # 4. **Which condition is hardest?** Split the city raw-pixel R@1 by query condition (`city.q_condition`,
 #    `city.condition_names`). Does the ranking match what you saw in notebook 00?
+#    <details><summary>Hint</summary><code>correct</code> (computed for the retrieval grid above) says, for each
+#    query of the seed-0 city, whether the first raw-pixel answer is a positive; average it over
+#    <code>city.q_condition == c</code> for each condition <code>c</code>, labelled
+#    <code>city.condition_names[c]</code>. Each condition has only about 60 of the 318 queries, so repeat on
+#    <code>worlds["city", 1]</code> before you rank them.</details>
 # 5. **A better untrained descriptor.** Try `build_model("small_cnn", "gem")` and `"max"` pooling with random
 #    weights, or raw pixels of a 2× downsampled image. Do any of them beat raw pixels here?
+#    <details><summary>Hint</summary>Build each model as <code>random_cnn</code> is built
+#    (<code>vpr_nb.seed_everything(0)</code>, then <code>build_model("small_cnn", "gem")</code>) and describe the
+#    images with <code>compute_descriptors(model, images)</code>; for the downsampled pixels average 2×2 blocks,
+#    <code>images.reshape(len(images), 16, 2, 24, 2, 3).mean((2, 4))</code>, before
+#    <code>raw_pixel_descriptors</code>. Compare on every seed of <code>SEEDS</code>, as the baseline table does:
+#    the typical seed-to-seed spread is printed under the knob sweep.</details>
 #
 # ## Takeaways
 #
@@ -351,7 +376,29 @@ record("01_retrieval_and_recall", {
 # * Without learning, raw pixels and a random CNN retrieve the right place only occasionally (the numbers
 #   above); the synthetic world's condition changes, camera jitter and parallax are what defeat them.
 #   The following notebooks learn descriptors that do much better.
+
+# %% [markdown]
+# ## Self-check
 #
+# 1. Why may `vpr_nb` search with faiss's inner-product index when the task asks for the database image
+#    nearest in L2 distance?
+#    <details><summary>Answer</summary>The descriptors are L2-normalised, so by Eq. (2)
+#    $\lVert q - d \rVert^2 = 2 - 2\langle q, d \rangle$: the largest inner product is the smallest distance.
+#    The faiss cell shows it: the same top-20 indices for 1.000 of the entries. Without the normalisation the
+#    two rankings can disagree (Exercise 1).</details>
+# 2. Raw pixels reach R@1 = 0.226 but R@10 = 0.761 on the seed-0 city test split. What does R@10 count that
+#    R@1 does not, and why can R@N never fall as N grows?
+#    <details><summary>Answer</summary>R@10 counts a query as solved when any of its first 10 answers lies within
+#    25 m, not only the first. A query solved within the first N answers is solved within any longer list, which
+#    starts with the same N; with N as large as the database every query with a positive is solved.</details>
+# 3. In the knob sweep the occluder rate moves raw-pixel R@1 by 0.011 across its values and the heading jitter
+#    by 0.104. Which of the two has a measurable effect in this run, and how do you tell?
+#    <details><summary>Answer</summary>Only the heading jitter: compare each range with the typical
+#    seed-to-seed spread at one setting, 0.032. The heading jitter's 0.104 is about three times that spread (it
+#    shifts the whole image sideways); the occluders' 0.011 lies well inside it, so at this budget it is
+#    noise.</details>
+
+# %% [markdown]
 # ## References
 #
 # * J. Johnson, M. Douze, H. Jégou. *Billion-scale similarity search with GPUs.* IEEE Transactions on Big Data,

@@ -85,10 +85,11 @@ def is_pinned(env: Mapping[str, str] | None = None) -> bool:
 # The libraries that read PINNED when they start: once one of them runs, this process keeps the kernels it got.
 NUMERICAL_LIBRARIES = ("numpy", "torch", "scipy", "faiss", "matplotlib")
 NATIVE_ENV = "VPR_NB_NATIVE_KERNELS"     # =1: leave the kernels to the libraries (faster; other trained numbers)
-# How far a trained number may move when a notebook runs on its processor's native kernels instead of the pinned
-# ones: measured by executing the CI profile of every notebook both ways on one machine (the largest Recall@1
-# difference of a printed trained number; ``tests/test_kernels.py`` names the measurement).
-UNPINNED_DIFFERENCE = 0.07
+# How far a trained number in [0, 1] (a Recall@N, a cosine, a probability) moved when the notebooks ran on this
+# machine's own kernels instead of the pinned ones: the CI profiles of 02-07 executed both ways on one AMD EPYC
+# (AVX-512), largest difference per notebook 0.060 (02), 0.000 (03), 0.006 (04), 0.081 (05), 0.000 (06),
+# 0.087 (07); rounded up. The reproduce profiles' multi-seed means were not measured this way.
+UNPINNED_DIFFERENCE = 0.09
 
 
 def pin_before_start() -> str | None:

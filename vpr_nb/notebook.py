@@ -52,7 +52,7 @@ class Setup:
         results_dir: the committed reproduce-profile results (:mod:`vpr_nb.results`): the clone's
             ``notebooks/results/``, or the copy installed with the package (:mod:`vpr_nb.package_data`).
         pinned: whether this kernel computes with the pinned CPU kernels (the stored outputs' numbers).
-        tolerance: how far a trained Recall may move from the stored one here: 0 when pinned, else
+        tolerance: how far a trained number in [0, 1] may move from the stored one here: 0 when pinned, else
             :data:`vpr_nb.kernels.UNPINNED_DIFFERENCE`.
     """
 
@@ -89,7 +89,7 @@ def unpinned_note(reason: str) -> str:
     """The one line :func:`setup` prints where the kernels could not be pinned (``reason`` says why)."""
     fix = (" Restart the kernel and run this cell first for the stored numbers." if "started before" in reason else "")
     return (f"note: this kernel runs on its processor's own CPU kernels ({reason}), so trained numbers may differ "
-            f"from the stored ones by up to {UNPINNED_DIFFERENCE} Recall@1.{fix}")
+            f"from the stored ones by up to {UNPINNED_DIFFERENCE} (Recall@N, cosines).{fix}")
 
 
 def budget(profile: str, *, ci: Mapping, reproduce: Mapping) -> dict:
