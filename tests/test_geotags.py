@@ -3,30 +3,17 @@ file, the row and the likely cause; an implausible one is named in a warning; va
 
 Each test copies a tiny fixture of data_fixtures/ into tmp_path and breaks its geotags one way.
 """
-import importlib.util
-import shutil
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from dataset_fixtures import FIX, MF
+from dataset_fixtures import copy_fixture as _copy
+from dataset_fixtures import edit_lines as _edit
 from vpr_nb import datasets as D
 
-FIX = Path(__file__).resolve().parents[1] / "data_fixtures"
-_spec = importlib.util.spec_from_file_location("make_fixtures", FIX / "make_fixtures.py")
-MF = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(MF)
-
-
-def _copy(name, tmp_path):
-    dst = tmp_path / name
-    shutil.copytree(FIX / name, dst)
-    return dst
-
-
-def _edit(path, fn):
-    path.write_text("\n".join(fn(path.read_text().splitlines())) + "\n")
 
 
 def _edit_row(path, row, fn):
