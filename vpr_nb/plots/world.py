@@ -1,4 +1,4 @@
-"""Figures shared by the notebooks: the world map, image grids, retrieval grids, recall curves.
+"""Figures of the world and of retrieval: the world map, image grids, retrieval grids, recall curves.
 
 Every function draws on matplotlib axes and returns the figure (or axes), so a notebook can add a
 title or save it; nothing here calls ``plt.show()``.
@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Rectangle
 
-from .synthetic import SPLITS
+from ..synthetic import SPLITS
 
 SPLIT_COLOURS = {0: "tab:blue", 1: "tab:orange", 2: "tab:green"}
 CORRECT, WRONG = "#1a9850", "#d73027"
