@@ -101,7 +101,7 @@ test-fast: dev
 	$(BIN)/python -m pytest -p no:cacheprovider -q tests -m "not slow"
 
 reproduce: venv
-	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports --jobs $(JOBS)
+	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports --jobs $(JOBS)$(if $(NOTEBOOK), --notebook $(NOTEBOOK))
 
 # re-make the course backbone (vpr_nb/weights/course_backbone.pt + .json), about 6 min on 2 cores
 pretrain: venv

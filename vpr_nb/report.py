@@ -17,6 +17,10 @@ tagged ``parameters``, and writes under ``--out``:
   wall time and the recorded results as Markdown tables; ``results.json`` holds the same data.
 
 A failing notebook is reported and the next one runs; the exit status is 1 if any failed.
+
+``--notebook 03`` (``make reproduce NOTEBOOK=03``) runs that notebook alone (:func:`run_notebook_alone`), writes
+its results to ``OUT/results/`` instead of ``notebooks/results/`` and shows them beside the committed ones
+(``OUT/comparison.md``); :mod:`vpr_nb.reproduce_one` holds that run's parts.
 """
 from __future__ import annotations
 
@@ -35,7 +39,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from urllib.parse import quote
 
+from . import reproduce_one as one
 from .kernels import cpu_description, pin_this_process
+from .package_data import RESULTS_DIR_ENV, committed_results_dir
 
 RESULTS_ENV = "VPR_NB_RESULTS"
 PROFILES = ("ci", "reproduce")
@@ -268,26 +274,19 @@ def run_notebook(src: Path, out_path: Path, profile: str, results_file: Path) ->
     """Execute one notebook with papermill; return ``{status, error, seconds}`` (never raises on a cell error)."""
     import papermill
 
-    saved = {k: os.environ.get(k) for k in (RESULTS_ENV, "MPLBACKEND")}
-    os.environ[RESULTS_ENV] = str(results_file.resolve())
-    os.environ["MPLBACKEND"] = INLINE_BACKEND  # figures as PNG outputs even if the shell set Agg
     start = time.perf_counter()
     status, error = "ok", ""
-    try:
-        papermill.execute_notebook(str(src), str(out_path), parameters={"PROFILE": profile},
-                                   cwd=str(src.parent), kernel_name="python3", progress_bar=False)
-    except Exception as exc:  # noqa: BLE001 - report any failure and go on with the next notebook
-        status = "failed"
-        if hasattr(exc, "ename"):
-            error = f"{exc.ename}: {exc.evalue} (cell {getattr(exc, 'cell_index', '?')})"
-        else:
-            error = f"{type(exc).__name__}: {exc}"
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
+    # figures as PNG outputs even if the shell set Agg
+    with one.environment({RESULTS_ENV: str(results_file.resolve()), "MPLBACKEND": INLINE_BACKEND}):
+        try:
+            papermill.execute_notebook(str(src), str(out_path), parameters={"PROFILE": profile},
+                                       cwd=str(src.parent), kernel_name="python3", progress_bar=False)
+        except Exception as exc:  # noqa: BLE001 - report any failure and go on with the next notebook
+            status = "failed"
+            if hasattr(exc, "ename"):
+                error = f"{exc.ename}: {exc.evalue} (cell {getattr(exc, 'cell_index', '?')})"
             else:
-                os.environ[k] = v
+                error = f"{type(exc).__name__}: {exc}"
     return {"status": status, "error": error, "seconds": round(time.perf_counter() - start, 1)}
 
 
@@ -344,11 +343,12 @@ def _run_one(src: Path, out: Path, profile: str) -> dict:
 
 
 def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: str = DEFAULT_PATTERN,
-               jobs: int = 1) -> dict:
+               jobs: int = 1, *, sources: list[Path] | None = None, heartbeat: one.Heartbeat | None = None) -> dict:
     """Run the notebook sequence and write the report; returns the ``results.json`` payload.
 
     ``jobs`` > 1 runs that many notebooks at once (each kernel uses one torch thread), a notebook starting
-    only after the notebooks it reads (:func:`notebook_dependencies`); the report lists them in order."""
+    only after the notebooks it reads (:func:`notebook_dependencies`); the report lists them in order.
+    ``sources`` runs those notebooks instead of ``pattern``'s; ``heartbeat`` is told when each starts and ends."""
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     if profile not in PROFILES:
@@ -356,7 +356,7 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
                          f"('ci' is small and quick, 'reproduce' the full report)")
     if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
         raise ValueError(f"jobs must be a whole number >= 1 (notebooks run at once), got {jobs!r}")
-    sources = find_notebooks(notebooks_dir, pattern)
+    sources = list(sources) if sources is not None else find_notebooks(notebooks_dir, pattern)
     deps = notebook_dependencies(sources)
     pin_this_process()      # every kernel (and its workers) computes with the same kernels on any x86-64 machine
     out = Path(out)
@@ -364,20 +364,27 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
         (out / sub).mkdir(parents=True, exist_ok=True)
     # a run over a subset of the notebooks must not leave copies and figures of an earlier run beside it
     for old in [*(out / "notebooks").glob("*.ipynb"), *(out / "figures").glob("*.png"), *(out / "records").glob("*"),
-                out / "results.json", out / "results.md", out / "results.jsonl"]:
+                out / "results.json", out / "results.md", out / "results.jsonl", out / "comparison.md"]:
         old.unlink(missing_ok=True)
     header = environment_header(profile)
     start = time.perf_counter()
     done: dict[str, dict] = {}
 
+    def started(src):
+        print(f"[run ] {src.name} (profile {profile})", flush=True)
+        if heartbeat is not None:
+            heartbeat.start(src.stem)
+
     def report(entry):
+        if heartbeat is not None:
+            heartbeat.stop(entry["name"])
         print(f"[{entry['status']:>4}] {entry['name']}.ipynb {entry['seconds']:.1f} s"
               + (f"  {entry['error']}" if entry["error"] else ""), flush=True)
         done[entry["name"]] = entry
 
     if jobs == 1:
         for src in sources:
-            print(f"[run ] {src.name} (profile {profile})", flush=True)
+            started(src)
             report(_run_one(src, out, profile))
     else:
         pending, running = list(sources), {}
@@ -385,7 +392,7 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
             while pending or running:
                 for src in [p for p in pending if deps[p.stem] <= set(done)][:jobs - len(running)]:
                     pending.remove(src)
-                    print(f"[run ] {src.name} (profile {profile})", flush=True)
+                    started(src)
                     running[pool.submit(_run_one, src, out, profile)] = src
                 finished, _ = wait(running, return_when=FIRST_COMPLETED)
                 for fut in finished:
@@ -401,6 +408,44 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     return payload
 
 
+def run_notebook_alone(which: str, profile: str = "reproduce", out="reports", notebooks_dir="notebooks",
+                       jobs: int = 1, *, into_committed: bool = False, committed_dir=None,
+                       progress_every: float = 60.0) -> dict:
+    """Run notebook ``which`` (``"03"``) alone, after the notebooks it reads whose committed results are missing:
+    print an estimate first and a progress line every ``progress_every`` seconds, then its numbers beside the
+    committed ones (also written to ``OUT/comparison.md``). Its results go to ``OUT/results/`` (which holds copies
+    of the other notebooks' committed results), or, with ``into_committed``, into the committed folder."""
+    sources = find_notebooks(notebooks_dir)
+    target = one.select_notebook(sources, which)
+    committed = Path(committed_dir) if committed_dir is not None else committed_results_dir()
+    run = one.notebooks_to_run(target, sources, notebook_dependencies(sources), committed)
+    committed_file = committed / f"{target.stem}.json"
+    before = one.read_results(committed_file)
+    before_mtime = committed_file.stat().st_mtime_ns if committed_file.is_file() else None
+    results_dir = committed if into_committed else Path(out) / "results"
+    estimates = {p.stem: one.estimate(p.stem, profile, committed) for p in run}
+    for p in run:
+        why = "" if p == target else f"{target.stem} reads its results and {one.shown_path(committed)} has none"
+        print(one.plan_line(p.stem, profile, estimates[p.stem], why), flush=True)
+    print(f"[plan] results go to {one.shown_path(results_dir)}/" + ("" if into_committed else
+          f" ({one.shown_path(committed)}/ is not touched); then this run's numbers beside the committed ones"),
+          flush=True)
+    env = {}
+    if not into_committed:
+        one.prepare_results_dir(results_dir, committed, [p.stem for p in run])
+        env = {RESULTS_DIR_ENV: str(results_dir.resolve()), one.ALLOW_DIRTY_ENV: "1"}
+    with one.environment(env), one.Heartbeat(estimates, progress_every) as beat:
+        payload = run_report(profile, out, notebooks_dir, jobs=jobs, sources=run, heartbeat=beat)
+    new_file = results_dir / f"{target.stem}.json"
+    rewritten = new_file.is_file() and (not into_committed or new_file.stat().st_mtime_ns != before_mtime)
+    text = one.render_comparison(target.stem, before, one.read_results(new_file) if rewritten else None,
+                                 one.shown_path(committed), one.shown_path(new_file))
+    Path(out).mkdir(parents=True, exist_ok=True)
+    (Path(out) / "comparison.md").write_text(text, encoding="utf-8")
+    print("\n" + text + f"\n(also in {Path(out) / 'comparison.md'})", flush=True)
+    return payload
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m vpr_nb.report", description=__doc__.split("\n\n")[0])
     parser.add_argument("--profile", required=True, choices=PROFILES, help="budget profile injected as PROFILE")
@@ -410,9 +455,24 @@ def main(argv=None) -> int:
     parser.add_argument("--notebooks-dir", default="notebooks", help="folder holding the notebooks")
     parser.add_argument("--jobs", type=int, default=1, help="notebooks run at once (default 1; a notebook waits "
                         "for those whose results it reads)")
+    parser.add_argument("--notebook", metavar="NN", help="run only notebook NN (e.g. 03), after the notebooks it "
+                        "reads whose committed results are missing; its results go to OUT/results/ and are shown "
+                        "beside the committed ones")
+    parser.add_argument("--into-committed", action="store_true", help="with --notebook: write its results into "
+                        "notebooks/results/ (the committed results), as a run of every notebook does")
+    parser.add_argument("--progress-every", type=float, default=60.0, metavar="SECONDS",
+                        help="with --notebook: a progress line this often (default 60; 0 for none)")
     args = parser.parse_args(argv)
+    if args.notebook is None and args.into_committed:
+        parser.error("--into-committed goes with --notebook NN")
+    if args.notebook is not None and args.notebooks != DEFAULT_PATTERN:
+        parser.error("give --notebook NN or --notebooks PATTERN, not both")
     try:
-        payload = run_report(args.profile, args.out, args.notebooks_dir, args.notebooks, jobs=args.jobs)
+        if args.notebook is not None:
+            payload = run_notebook_alone(args.notebook, args.profile, args.out, args.notebooks_dir, args.jobs,
+                                         into_committed=args.into_committed, progress_every=args.progress_every)
+        else:
+            payload = run_report(args.profile, args.out, args.notebooks_dir, args.notebooks, jobs=args.jobs)
     except (ValueError, FileNotFoundError) as exc:
         parser.error(str(exc))  # exits with status 2 and the message
     failed = [nb["name"] for nb in payload["notebooks"] if nb["status"] != "ok"]
