@@ -18,7 +18,7 @@ stored numbers, as ``make lab`` does. Where it cannot (Colab, an ARM or Apple pr
 * :func:`budget` is the one shape in which a notebook declares what differs between its two profiles:
   the same keys for ``ci`` and ``reproduce``, and the chosen profile's values come back.
 * :func:`committed_experiment` reads the experiment settings another notebook's committed
-  reproduce-profile results were computed with (notebook 05 reuses notebook 04's).
+  reproduce-profile results were computed with, for a notebook that reuses another's setting.
 """
 from __future__ import annotations
 
