@@ -116,6 +116,21 @@ def triplet_loss_by_hand(q, p, n, margin):
     return torch.clamp(d_qp[:, None] - d_qn + margin, min=0).sum()
 
 
+# %%
+# a batch to try it on: 8 unit queries, each with a positive and M = 5 negatives, all noisy copies of it
+g = torch.Generator().manual_seed(0)
+B, D = 8, 32
+q = torch.nn.functional.normalize(torch.randn(B, D, generator=g), dim=-1)
+p = torch.nn.functional.normalize(q + 0.8 * torch.randn(B, D, generator=g), dim=-1)
+n = torch.nn.functional.normalize(q[:, None] + 1.0 * torch.randn(B, M, D, generator=g), dim=-1)
+plots.plot_triplets(q, p, n, MARGIN)
+plt.show()
+
+# %% [markdown]
+# **Figure 1.** Eq. (3) on this batch. Left: a query (star), its positive (blue) and negatives at their true
+# distances: inside the grey margin band's outer edge a negative is active (red, loss > 0), beyond it satisfied
+# (green). Right: all 40 triplets; those below the line $d(q,n) = d(q,p) + m$ have loss.
+
 # %% [markdown]
 # ## Use `vpr_nb`: the same number three ways
 #
@@ -124,12 +139,6 @@ def triplet_loss_by_hand(q, p, n, margin):
 # hence the tolerance.
 
 # %%
-g = torch.Generator().manual_seed(0)
-B, D = 8, 32
-q = torch.nn.functional.normalize(torch.randn(B, D, generator=g), dim=-1)
-p = torch.nn.functional.normalize(q + 0.8 * torch.randn(B, D, generator=g), dim=-1)
-n = torch.nn.functional.normalize(q[:, None] + 1.0 * torch.randn(B, M, D, generator=g), dim=-1)
-
 by_hand = triplet_loss_by_hand(q, p, n, MARGIN)
 ours = triplet_loss(q, p, n, margin=MARGIN)
 torch_ref = torch.nn.TripletMarginLoss(margin=MARGIN, p=2, reduction="sum")(
@@ -275,7 +284,7 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 1.** Learning curves of the recipe: mean training loss per epoch (left) and validation
+# **Figure 2.** Learning curves of the recipe: mean training loss per epoch (left) and validation
 # Recall@1 (right). The epoch with the best validation R@1 is the one kept.
 
 # %% [markdown]
@@ -322,7 +331,7 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 2.** Training health, the recipe (lr 0.05) beside the same recipe at lr 0.5: the loss divided
+# **Figure 3.** Training health, the recipe (lr 0.05) beside the same recipe at lr 0.5: the loss divided
 # by the collapsed loss (left; 1 means no better than one descriptor for every image), the mean pairwise
 # cosine of the validation database descriptors (middle) and validation Recall@1 (right).
 
@@ -370,7 +379,7 @@ plots.plot_recalls(results, title="city tiny test")
 plt.show()
 
 # %% [markdown]
-# **Figure 3.** Test Recall@N on the tiny city: raw pixels, the untrained and the trained small CNN + GeM,
+# **Figure 4.** Test Recall@N on the tiny city: raw pixels, the untrained and the trained small CNN + GeM,
 # and the frozen course backbone + GeM.
 
 # %% [markdown]
@@ -392,7 +401,7 @@ print(f"wrong top-1: {int((~correct).sum())} of {len(correct)}; median distance 
       f"{np.median(dist_m[~correct, 0]):.0f} m")
 
 # %% [markdown]
-# **Figure 4.** Two test queries solved at rank 1 and two that are not: each row is the query (grey frame)
+# **Figure 5.** Two test queries solved at rank 1 and two that are not: each row is the query (grey frame)
 # and its top-5 database images, framed green within 25 m and red otherwise, labelled with their true
 # distance.
 
@@ -444,7 +453,7 @@ else:
     print("ablations skipped in the ci profile (run with PROFILE = 'reproduce', or see Exercise 1)")
 
 # %% [markdown]
-# **Figure 5** (`reproduce` profile only; the `ci` profile prints that it skipped the ablations).
+# **Figure 6** (`reproduce` profile only; the `ci` profile prints that it skipped the ablations).
 # Learning curves of the recipe and of the two ablations: training loss (left) and validation Recall@1
 # (right).
 

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from vpr_nb import results
+from vpr_nb import plots, results
 from vpr_nb.evaluation import (compute_descriptors, evaluate_descriptors, evaluate_model, images_to_tensor,
                                raw_pixel_descriptors)
 from vpr_nb.losses import (CETripletLoss, DWTripletLoss, TripletLoss, WeightedTripletLoss, ce_triplet_loss, distance_weight,
@@ -192,17 +192,26 @@ def wt_loss_by_hand(q, p, n, geo, margin, sigma, eps):
     return (weight_by_hand(geo, sigma, eps)[:, None] * torch.clamp(d_p - d_n + margin, min=0)).sum()
 
 
-# %% [markdown]
-# ## Use `vpr_nb`: the same numbers
-
 # %%
+# a batch to try them on: 8 queries, each with a positive (and its distance in metres) and M = 5 negatives
 g = torch.Generator().manual_seed(0)
 B, D = 8, 32
 q = F.normalize(torch.randn(B, D, generator=g), dim=-1)
 p = F.normalize(q + 0.8 * torch.randn(B, D, generator=g), dim=-1)
 n = F.normalize(q[:, None] + 1.0 * torch.randn(B, M, D, generator=g), dim=-1)
 geo = 10.0 * torch.rand(B, generator=g)                                   # positives within 10 m
+plots.plot_distance_weight(geo, weight_by_hand(geo, SIGMA, EPS), SIGMA, EPS)
+plt.show()
 
+# %% [markdown]
+# **Figure 3.** Eq. (4) for this batch's 8 positives. Left: the curve on a log distance axis, zero at σ = 800 m,
+# and T-Loss's weight 1 (dashed). Right: the weights by distance rank, all about 9: here W-T-Loss is T-Loss
+# scaled, not re-ranked.
+
+# %% [markdown]
+# ## Use `vpr_nb`: the same numbers
+
+# %%
 checks = {
     "Eq. (4) weight": (weight_by_hand(geo, SIGMA, EPS), distance_weight(geo, SIGMA, EPS)),
     "W-T-Loss": (wt_loss_by_hand(q, p, n, geo, MARGIN, SIGMA, EPS), weighted_triplet_loss(q, p, n, geo, MARGIN, SIGMA, EPS)),
@@ -406,7 +415,7 @@ print(f"real triplets (initial NetVLAD model): d_n − d_p from {gap.min():.3f} 
       f"and {np.mean(gap < MARGIN):.3f} of them violate the margin {MARGIN}")
 
 # %% [markdown]
-# **Figure 3.** Left: $\hat d_n$ of Eqs. (5)–(6) over the whole reachable range of $d_n - d_p$, without and with a
+# **Figure 4.** Left: $\hat d_n$ of Eqs. (5)–(6) over the whole reachable range of $d_n - d_p$, without and with a
 # temperature τ = 0.1. Right: the size of each loss's derivative per triplet over the same range (CE-Loss,
 # CE with τ = 0.1, T-Loss at both margins), over the histogram of $d_n - d_p$ of the real triplets mined with
 # the starting NetVLAD model (grey).
@@ -586,7 +595,7 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 4.** Test R@1 of the Table II analog (left, NetVLAD-16, with the two SGD rows) and the Table III
+# **Figure 5.** Test R@1 of the Table II analog (left, NetVLAD-16, with the two SGD rows) and the Table III
 # analog (right): mean ± standard deviation over the reproduce profile's seeds (blue; dots are single seeds),
 # the mean R@1 of each row's own starting weights (red bar) and the paper's Pittsburgh30k numbers (orange;
 # none for the SGD rows).

@@ -331,6 +331,23 @@ assert torch.allclose(pkg_model.aggregator.conv.weight, netvlad_model.aggregator
 assert torch.allclose(pkg_model.aggregator.centroids, netvlad_model.aggregator.centroids, atol=1e-5)
 print("kmeans_init by hand == vpr_nb.models.init_netvlad: True")
 
+# %%
+# the layer just initialised, on one training image: Eq. (3) with soft_assign and Eq. (4) by hand
+image = train_split.db_images[0]
+nv = netvlad_model.aggregator
+with torch.no_grad():
+    fmap0 = netvlad_model.backbone(images_to_tensor(image[None]))[0]          # [D, 8, 12]
+    x0 = F.normalize(fmap0.flatten(1).T, dim=1)                               # N = 96 local descriptors
+    a0 = soft_assign(x0, nv.conv.weight[:, :, 0, 0], nv.conv.bias)           # Eq. (3), [N, K]
+    V0 = a0.T @ x0 - a0.sum(dim=0)[:, None] * nv.centroids                   # Eq. (4), [K, D]
+    assert torch.allclose(F.normalize(F.normalize(V0, dim=1).flatten(), dim=0), nv(fmap0[None])[0], atol=1e-5)
+plots.plot_netvlad(image, a0.T.reshape(K, *fmap0.shape[1:]), V0)
+plt.show()
+
+# %% [markdown]
+# **Figure 2.** The k-means-initialised NetVLAD on one training image: the image, each position's nearest
+# cluster $\arg\max_k \bar a_k$ over it (one colour per cluster), how decided the soft assignment of Eq. (3) is,
+# and the norm of each cluster's residual sum $V_k$, Eq. (4), before intra-normalisation.
 
 # %% [markdown]
 # **Before or after the ReLU, measured.** The same k-means-initialised NetVLAD, nothing trained, on the
@@ -517,7 +534,7 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 2.** Reproduce profile: test Recall@N of every row, fine-tuned rows averaged over the seeds (left),
+# **Figure 3.** Reproduce profile: test Recall@N of every row, fine-tuned rows averaged over the seeds (left),
 # and validation Recall@1 per epoch of the fine-tuned rows, mean ± standard deviation over the seeds (right).
 
 # %% [markdown]
@@ -558,7 +575,7 @@ print(f"mean max assignment on these images: k-means init {a_init.amax(1).mean()
       f"trained {a_trained.argmax(1).unique().numel()} of {K}")
 
 # %% [markdown]
-# **Figure 3.** Three test queries (left column), the cluster with the largest assignment at every position
+# **Figure 4.** Three test queries (left column), the cluster with the largest assignment at every position
 # of the feature map at the k-means initialisation and after training (middle columns, one colour per
 # cluster), and the largest assignment weight after training (right); trained: the committed reproduce-profile
 # NetVLAD of seed 0.

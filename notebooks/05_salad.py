@@ -46,7 +46,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from vpr_nb import results
+from vpr_nb import plots, results
 from vpr_nb.aggregation import SALAD, salad_aggregate, sinkhorn
 from vpr_nb.evaluation import (images_to_tensor, model_recall_row,
                                raw_pixel_descriptors, recall_row)
@@ -155,18 +155,10 @@ for iters in (1, 3, 100):
 
 # %% [markdown]
 # After 100 iterations every marginal of Eq. (3) holds; after SALAD's 3 iterations the columns are
-# exact and the rows close. The library's batched `vpr_nb.aggregation.sinkhorn` is the same function:
+# exact and the rows close. Figure 1 draws the plans and the row error with the library's batched
+# `vpr_nb.aggregation.sinkhorn`, which "Use `vpr_nb`" below checks equal to `sinkhorn_by_hand`:
 
 # %%
-for iters in (1, 3, 100):
-    ours = sinkhorn_by_hand(toy_scores, z, iters)
-    lib = sinkhorn(toy_scores[None], z, num_iters=iters)[0]
-    assert torch.allclose(ours, lib, atol=1e-10)
-plan = sinkhorn(toy_scores[None], z, num_iters=100)[0].exp()
-assert torch.allclose(plan.sum(0), torch.ones(12, dtype=torch.float64), atol=1e-4)
-assert torch.allclose(plan.sum(1), torch.tensor([1.0, 1, 1, 1, 8], dtype=torch.float64), atol=1e-4)
-print("vpr_nb.sinkhorn equals the derivation; marginals (1, ..., 1 | n - m) and (1, ..., 1) hold to 1e-4")
-
 iters_axis = np.arange(1, 31)
 row_err = [(sinkhorn(toy_scores[None], z, num_iters=int(k))[0].exp().sum(1)
             - torch.tensor([1.0, 1, 1, 1, 8], dtype=torch.float64)).abs().max().item() for k in iters_axis]
@@ -222,8 +214,7 @@ print("gradient of a loss on the 3-iteration plan with respect to z: " + ("below
 # ## Build it: SALAD from the plan
 #
 # Given the projected features, scores and token (the MLP heads are plain 1×1 convolutions and linear
-# layers), Eqs. (4)-(5) take three lines. We reuse the heads of a `vpr_nb` SALAD layer built with
-# SALAD's **default (paper) sizes**, and the derivation must give the same 8448-D descriptor:
+# layers), Eqs. (4)-(5) take three lines:
 
 # %%
 def salad_by_hand(f, s, g, z):
@@ -232,6 +223,62 @@ def salad_by_hand(f, s, g, z):
     v = F.normalize(f @ p.T, dim=0)                         # Eq. (4), each cluster column L2-normalised, [l, m]
     return F.normalize(torch.cat([F.normalize(g, dim=0), v.flatten()]), dim=0)   # flattened as l*m + k
 
+
+# %% [markdown]
+# **The plan on an image.** Eq. (2) on the scores of a real image: a test query of the course's city world
+# (generated here; the rest of the notebook uses it) through the recipe's SALAD start, the course backbone
+# and a SALAD head of $m = 16$ clusters, untrained (`vpr_nb.recipe.build_start`; the section after next
+# explains its standardised inputs). Its score head gives the $16 \times 96$ scores of the $n = 8 \times 12$
+# positions of the feature map, and `sinkhorn_by_hand` their plan with the dustbin row:
+
+# %%
+# NBVAL_IGNORE_OUTPUT
+# (generation time varies)
+t0 = time.perf_counter()
+w = EXPERIMENT["world"]
+ds = make_dataset(w["preset"], seed=w["seed"], size=w["size"])
+train_split, test_split = ds.train, ds.test
+val_split = validation_split(VALIDATION_WORLD)   # the recipe's validation world: city seed 1, 803 queries
+print(f"generated in {time.perf_counter() - t0:.1f} s")
+
+# %%
+plan_start = build_start(Method("SALAD", "salad"), train_split, RECIPE, seed=0).eval()   # seeds everything with 0
+plan_query = test_split.q_images[0]
+with torch.no_grad():
+    fmap_q, _ = plan_start.backbone.forward_with_token(images_to_tensor(plan_query[None]))
+    scores_q = plan_start.aggregator.score(fmap_q)[0].flatten(1)                 # S, [m, n]
+plan_q = sinkhorn_by_hand(scores_q, plan_start.aggregator.dust_bin.item(), 3).exp()   # P, [m+1, n], Eqs. (2)-(3)
+plots.plot_salad_plan(plan_query, plan_q, fmap_q.shape[2:])
+plt.show()
+
+# %% [markdown]
+# **Figure 2.** The plan of Eqs. (2)-(3) on one test query, SALAD's 3 iterations from the untrained recipe
+# start. Left: each of the 96 positions of the feature map coloured by the cluster that receives most of its
+# mass; a cross marks the positions that give the dustbin more than $(n - m)/n = 80/96 = 0.83$ of their mass,
+# its share under a uniform plan. Right: the plan itself (log colour scale; the strip above it repeats each
+# position's colour): each column gives mass 1, each of the 16 cluster rows receives about 1, spread thinly
+# over many positions, and the dustbin row (bottom) takes the other 80. Untrained, the plan is close to
+# uniform (every cluster entry near 1/96), yet neighbouring positions of one surface often share a cluster (the
+# road along the bottom rows): the random score head already follows the image content. Figure 4 shows the
+# trained plan.
+
+# %% [markdown]
+# ## Use `vpr_nb`: the same plan and descriptor from the library
+#
+# `vpr_nb.aggregation.sinkhorn` runs Eqs. (2)-(3) on a batch of score matrices, and `vpr_nb.aggregation.SALAD`
+# computes Eq. (4) for a batch as one product $F P^\top$. The toy matrix must give the same plan as
+# `sinkhorn_by_hand`; for SALAD we reuse the heads of a `vpr_nb` SALAD layer built with SALAD's **default
+# (paper) sizes**, and the derivation must give the same 8448-D descriptor:
+
+# %%
+for iters in (1, 3, 100):
+    ours = sinkhorn_by_hand(toy_scores, z, iters)
+    lib = sinkhorn(toy_scores[None], z, num_iters=iters)[0]
+    assert torch.allclose(ours, lib, atol=1e-10)
+plan = sinkhorn(toy_scores[None], z, num_iters=100)[0].exp()
+assert torch.allclose(plan.sum(0), torch.ones(12, dtype=torch.float64), atol=1e-4)
+assert torch.allclose(plan.sum(1), torch.tensor([1.0, 1, 1, 1, 8], dtype=torch.float64), atol=1e-4)
+print("vpr_nb.sinkhorn equals the derivation; marginals (1, ..., 1 | n - m) and (1, ..., 1) hold to 1e-4")
 
 vpr_nb.seed_everything(0)
 salad = SALAD().eval()                                       # 768 channels, 64 clusters x 128 + 256
@@ -268,17 +315,6 @@ except ValueError as err:
 # cluster vectors $V_{\cdot k}$ of an image (1 = all clusters identical), the entropy of each feature's
 # mass over the $m$ clusters (divided by $\log m$: 1 = uniform, 0 = one cluster), the dustbin's share of the
 # plan, and the test Recall@1 of the untrained model.
-
-# %%
-# NBVAL_IGNORE_OUTPUT
-# (generation time varies)
-t0 = time.perf_counter()
-w = EXPERIMENT["world"]
-ds = make_dataset(w["preset"], seed=w["seed"], size=w["size"])
-train_split, test_split = ds.train, ds.test
-val_split = validation_split(VALIDATION_WORLD)   # the recipe's validation world: city seed 1, 803 queries
-print(f"generated in {time.perf_counter() - t0:.1f} s")
-
 
 # %%
 def course(trainable_blocks):
@@ -543,7 +579,7 @@ for m in rows:
     print(f"{m:18s}: best epoch {rows[m]['best epoch']}, epochs run {rows[m]['epochs run']}")
 
 # %% [markdown]
-# **Figure 2.** Validation Recall@1 per epoch of the fine-tuned rows of the reproduce profile, averaged over
+# **Figure 3.** Validation Recall@1 per epoch of the fine-tuned rows of the reproduce profile, averaged over
 # the seeds still training at that epoch (each run stops 4 epochs after its best; dashed: the equal-size rows
 # and the Multi-Similarity row). Below: each row's selected epoch per seed.
 
@@ -614,7 +650,7 @@ print(f"largest entry of each cluster row of the plan, mean: {plans[:, :-1].amax
       f"main cluster: {plans[:, :-1].argmax(1).unique().numel()} of {m}")
 
 # %% [markdown]
-# **Figure 3.** The trained SALAD (committed reproduce profile, seed 0) on three test queries (left column): the share of each feature's
+# **Figure 4.** The trained SALAD (committed reproduce profile, seed 0) on three test queries (left column): the share of each feature's
 # mass that goes to the dustbin, the cluster that receives most of it, and the entropy of its distribution
 # over the clusters divided by $\log m$ (0: one cluster, 1: uniform).
 

@@ -169,9 +169,8 @@ desc["frozen backbone"] = {"db": compute_descriptors(frozen, te.db_images), "q":
 # %% [markdown]
 # ## Build it: Eqs. (1)–(3) in numpy
 #
-# On the small test split all pairs fit in a dense matrix, so the profile is a few lines of numpy. (The
-# package uses a k-d tree range search instead and never forms an $N \times N$ matrix: 100k images take a
-# few seconds, see `bench/bench_gds.py`.) We check it on the frozen course backbone.
+# On the small test split all pairs fit in a dense matrix, so the profile is a few lines of numpy. We build
+# it for the frozen course backbone.
 
 # %%
 def gds_by_hand(db, q, db_utm, q_utm, width, nbins, fit):
@@ -191,20 +190,47 @@ def gds_by_hand(db, q, db_utm, q_utm, width, nbins, fit):
 def p_mis_by_hand(mu, sd, b1, b2):                                        # Eq. (3)
     return ndtr((mu[b1] - mu[b2]) / np.sqrt(sd[b1] ** 2 + sd[b2] ** 2))
 
+d = desc["frozen backbone"]
+n, mu, sd, s = gds_by_hand(d["db"], d["q"], te.db_utm, te.q_utm, BIN, NBINS, FIT)
+print("pairs per bin:", n.tolist())
+print(f"frozen backbone: p(0 m, 10 m) = {p_mis_by_hand(mu, sd, 0, 2):.3f}, slope {10 * s:.3f} per 10 m")
+
+# %% [markdown]
+# ## Use `vpr_nb`: the same profile from the library
+#
+# `vpr_nb.gds.gds_profile` computes Eqs. (1)–(2) with a k-d tree range search instead and never forms an
+# $N \times N$ matrix (100k images take a few seconds, see `bench/bench_gds.py`);
+# `vpr_nb.gds.misordering_probability` gives Eq. (3). Same descriptors, same numbers as the derivation above:
+
+# %%
 def profile_of(d):
     return gds_profile(d["db"], te.db_utm, BIN * NBINS, BIN, query_descriptors=d["q"], query_utm=te.q_utm,
                        fit_range=FIT, keep_pairs=True)
 
-d = desc["frozen backbone"]
-n, mu, sd, s = gds_by_hand(d["db"], d["q"], te.db_utm, te.q_utm, BIN, NBINS, FIT)
 prof_f = profile_of(d)
 assert np.array_equal(n, prof_f.count)
 assert np.allclose(mu, prof_f.mean, atol=1e-6) and np.allclose(sd, prof_f.std, atol=1e-5)
 assert np.isclose(s, prof_f.slope, rtol=1e-4, atol=1e-8)
 assert np.isclose(p_mis_by_hand(mu, sd, 0, 2), misordering_probability(prof_f, 0.0, 10.0), atol=1e-5)
-print("pairs per bin:", n.tolist())
-print(f"frozen backbone: p(0 m, 10 m) = {p_mis_by_hand(mu, sd, 0, 2):.3f}, slope {10 * s:.3f} per 10 m"
-      "  (by hand == vpr_nb)")
+gap = max(np.abs(mu - prof_f.mean).max(), np.abs(sd - prof_f.std).max(),
+          abs(p_mis_by_hand(mu, sd, 0, 2) - misordering_probability(prof_f, 0.0, 10.0)))
+print(f"counts, means, stds and p(0 m, 10 m): by hand = vpr_nb to 1e-5: {bool(gap < 1e-5)}")
+
+# %% [markdown]
+# The profile of the frozen backbone as a picture (`vpr_nb.plots.plot_gds_misordering`): Eq. (1) as a curve with
+# its band, and Eq. (3) for $d_1 = 0$ m, $d_2 = 10$ m, the positive and the nearest negatives on the route.
+
+# %%
+plots.plot_gds_misordering(prof_f, 0.0, 10.0, label="frozen backbone")
+plt.show()
+
+# %% [markdown]
+# **Figure 1.** The GDS profile of the frozen course backbone on the route test split. Left: the mean descriptor
+# distance $\mu_b$ of each 4.8 m bin (Eq. 1) with its band $\mu_b \pm \sigma_b$; it climbs over the first
+# 15 m and is flat beyond, and the bins of $d_1 = 0$ m (blue) and $d_2 = 10$ m (red) are marked. Right: the
+# descriptor distances of the pairs of those two bins (histograms) and their Gaussians of Eq. (3); the shaded
+# overlap is where a 10 m pair can look more alike than a 0 m one, and the title gives the mis-ordering
+# probability $p(0, 10) = \Phi\big((\mu_1 - \mu_2) / \sqrt{\sigma_1^2 + \sigma_2^2}\big)$.
 
 # %% [markdown]
 # ## Experiment: raw pixels, frozen, fine-tuned
@@ -386,7 +412,7 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 1.** GDS on the route test split (live run): descriptor distance against geographic distance for
+# **Figure 2.** GDS on the route test split (live run): descriptor distance against geographic distance for
 # every model, mean ± 1 standard deviation per bin with the fit of Eq. (2) (left); the mis-ordering
 # probability $p(0, d_2)$ of Eq. (3) (middle); and $p(d_1, d_2)$ for every pair of distances of the
 # triplet-fine-tuned model (right; red: the farther image usually wins).
@@ -407,7 +433,7 @@ plt.show()
 # * *Close, but not there: here, rarely.* With this route's content (a distinct roadside object every metre,
 #   the camera turned 45° to the road), the caps of Eq. (5) sit far above the measured R@1 for every model
 #   (triplets: cap 0.956, R@1 0.802), and the live model's wrong top-1s are mostly far from the query (the
-#   count and median distance above Figure 2): what bounds R@1 on this route is recognising the place under
+#   count and median distance above Figure 3): what bounds R@1 on this route is recognising the place under
 #   another season, not ordering neighbouring frames.
 # * *The batches decide.* A loss that treats images 20 m apart as one place asks them to look alike; on a
 #   route where 20 m changes the roadside objects in view, that hurts from the first epoch (the MS arm's
@@ -447,7 +473,7 @@ demo = int(close[0]) if len(close) else 0
 show_query(demo)
 
 # %% [markdown]
-# **Figure 2.** A query whose top-1 under the triplet-fine-tuned model lies within 20 m but is not a
+# **Figure 3.** A query whose top-1 under the triplet-fine-tuned model lies within 20 m but is not a
 # positive: the query, then its top-5 database images with their true distances (the table above gives
 # their descriptor distances).
 
@@ -464,7 +490,7 @@ print(f"The default state, drawn once more without the widget (query 0, k = 5, {
 show_query(0, k=5, model=order[0])
 
 # %% [markdown]
-# **Figure 3.** The query explorer: sliders for the query and k and a menu for the model redraw a query's
+# **Figure 4.** The query explorer: sliders for the query and k and a menu for the model redraw a query's
 # top-k in JupyterLab; the table and images printed under it are its default state (query 0, k = 5, raw
 # pixels), stored for readers without a kernel.
 

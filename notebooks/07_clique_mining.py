@@ -48,7 +48,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vpr_nb import results
+from vpr_nb import plots, results
 from vpr_nb.evaluation import compute_descriptors, evaluate_descriptors, raw_pixel_descriptors, retrieve
 from vpr_nb.gds import gds_profile, misordering_probability, topk_order_agreement
 from vpr_nb.losses import MultiSimilarityLoss
@@ -193,11 +193,11 @@ for p, d in data.items():
 
 
 # %% [markdown]
-# ## Build it: Eq. (1) and the batch invariants
+# ## Build it: Eq. (1), a random-place batch and the batch invariants
 #
-# The weights of Eq. (1) in three lines, and a checker for what Eqs. (2) and (4) guarantee: every place
-# pairwise $< \tau$, different places $\ge \tau$ apart, no image twice. `vpr_nb.samplers.clique_batches` satisfies
-# them; random-place batches do not keep places apart.
+# The weights of Eq. (1) in three lines; the baseline's sampler (GSV-Cities: $P$ places drawn uniformly among
+# those with at least $K$ images, then $K$ random images of each) in four; and a checker for what Eqs. (2) and
+# (4) guarantee: every place pairwise $< \tau$, different places $\ge \tau$ apart, no image twice.
 
 # %%
 def similar_group_probs(x, anchor):                                  # Eq. (1)
@@ -206,6 +206,12 @@ def similar_group_probs(x, anchor):                                  # Eq. (1)
     w[anchor] = 0.0
     return w / w.sum()
 
+def random_places_by_hand(groups, places, k, num_batches, seed):   # the baseline's batches
+    rng = np.random.default_rng(seed)
+    pool = np.flatnonzero(np.bincount(groups) >= k)                 # places with >= K images
+    return np.array([[rng.choice(np.flatnonzero(groups == g), k, replace=False)
+                      for g in rng.choice(pool, places, replace=False)] for _ in range(num_batches)])
+
 def check_batch(batch, utm, tau):                                   # Eqs. (2) and (4)
     pts = utm[batch]                                                 # (P, K, 2)
     d = np.linalg.norm(pts[:, None, :, None] - pts[None, :, None, :], axis=-1)   # (P, P, K, K)
@@ -213,6 +219,17 @@ def check_batch(batch, utm, tau):                                   # Eqs. (2) a
     other = d[~np.eye(len(batch), dtype=bool)]
     return bool((same < tau).all()), bool((other >= tau).all()), len(np.unique(batch)) == batch.size
 
+
+# %% [markdown]
+# ## Use `vpr_nb`: the samplers of the library
+#
+# `vpr_nb.samplers.random_place_batches` draws the baseline's batches (and `RandomPlaceBatches` does so for the
+# training loop); with the same seed it gives the same batches as `random_places_by_hand`.
+# `vpr_nb.samplers.clique_batches` (and `CliqueBatchMaker`) builds clique batches with Eqs. (1)–(4), from group
+# descriptors of the frozen backbone computed once; every one of its batches must pass `check_batch`, and a
+# random-place batch need not, since nothing keeps its places apart.
+
+# %%
 image_desc = {p: compute_descriptors(frozen, d["images"]) for p, d in data.items()}   # the pretrained model
 gdesc = {p: sample_group_descriptors(image_desc[p], d["clusters"], 0) for p, d in data.items()}   # once, offline
 prob = similar_group_probs(gdesc["city"], 0)
@@ -225,6 +242,8 @@ for p, d in data.items():
                                  headings=d["heading"], max_heading_diff=MAX_HEADING[p]),
         "random": random_place_batches(d["groups"], P, 4, num_batches=20, seed=0)}
     assert all(all(check_batch(b, d["utm"], THRESHOLD[p])) for b in batches[p]["clique"])
+    assert np.array_equal(random_places_by_hand(d["groups"], P, 4, 20, seed=0), batches[p]["random"])
+print("random-place batches of both worlds: by hand = vpr_nb (the same image indices): True")
 d = data["city"]
 cb, rb = batches["city"]["clique"], batches["city"]["random"]
 print("city clique batch (pairwise < tau, places >= tau apart, distinct):", check_batch(cb[0], d["utm"], 25.0))
@@ -233,6 +252,23 @@ def heading_spread(b, heading):
     return float(np.abs((heading[b] - heading[b][..., :1] + 180) % 360 - 180).max())
 print(f"largest heading difference inside a place: clique {heading_spread(cb, d['heading']):.1f} deg, "
       f"random {heading_spread(rb, d['heading']):.1f} deg")
+
+# %% [markdown]
+# The first clique batch and the first random batch of the route as a picture
+# (`vpr_nb.plots.plot_clique_batches`), on the map of the route's training images:
+
+# %%
+plots.plot_clique_batches(route["utm"], batches["route"]["clique"][0], batches["route"]["random"][0],
+                          threshold=THRESHOLD["route"])
+plt.show()
+
+# %% [markdown]
+# **Figure 1.** One clique batch (top) and one random-place batch (bottom) of the tuned route, on the same map:
+# every training image in light grey, the 4 images of each of the batch's 16 places in one colour per place.
+# The clique batch takes its places from similar clusters of the route (Eq. 1), as cliques of the graph of
+# Eq. (2): they crowd into a few hundred metres, neighbouring places only just $\tau$ apart, so its negatives
+# are frames a few metres from the anchor. The random batch spreads its places over the whole 1.3 km route. The
+# titles give the median distance between the place centres of each batch.
 
 
 # %% [markdown]
@@ -315,7 +351,7 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 1.** One clique batch of the city (left): every image (light grey), the images of the batch's
+# **Figure 2.** One clique batch of the city (left): every image (light grey), the images of the batch's
 # groups and the edges of Eq. (2) between them (grey), and the 16 places of the batch (one colour each).
 # Right: for every image of 20 clique and 20 random batches, the distance to the nearest image of another
 # place of its batch (its hardest geographic negative); the dashed line is $\tau$.
@@ -548,7 +584,7 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 2.** Reproduce profile: test R@1 at ±1 and ±4 frames and $p(5, 10)$ for the three arms, one dot per
+# **Figure 3.** Reproduce profile: test R@1 at ±1 and ±4 frames and $p(5, 10)$ for the three arms, one dot per
 # seed (grey lines pair the seeds), mean ± standard deviation in black, and the frozen references (dashed).
 
 # %%

@@ -9,8 +9,16 @@ Every function returns the figure (or axes), so a notebook can add a title or sa
 """
 from __future__ import annotations
 
+from .clique import plot_clique_batches
+from .distance_weight import plot_distance_weight
+from .gds import plot_gds_misordering
+from .netvlad import plot_netvlad
+from .salad import plot_salad_plan
+from .triplet import plot_triplets
 from .world import (CORRECT, SPLIT_COLOURS, WRONG, condition_grid, image_grid, plot_map, plot_recalls,
                     retrieval_grid)
 
 __all__ = ["CORRECT", "WRONG", "SPLIT_COLOURS", "plot_map", "image_grid", "condition_grid", "retrieval_grid",
-           "plot_recalls"]
+           "plot_recalls",
+           "plot_triplets", "plot_distance_weight", "plot_netvlad",
+           "plot_salad_plan", "plot_gds_misordering", "plot_clique_batches"]
