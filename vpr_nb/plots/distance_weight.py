@@ -10,17 +10,7 @@ import numpy as np
 
 from .._checks import check_positive
 from ..losses import distance_weight
-
-
-def _vector(x, name: str) -> np.ndarray:
-    arr = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
-    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number) or arr.ndim != 1 or len(arr) == 0:
-        raise ValueError(f"{name} must be a non-empty 1-D array of numbers (one per query-positive pair), "
-                         f"got {arr.dtype} of shape {tuple(arr.shape)}")
-    arr = arr.astype(np.float64)
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} contains NaN or inf")
-    return arr
+from ._inputs import as_numbers
 
 
 def plot_distance_weight(geo_qp, weights, sigma: float, eps: float, axes=None):
@@ -34,7 +24,8 @@ def plot_distance_weight(geo_qp, weights, sigma: float, eps: float, axes=None):
     positive) beside T-Loss's 1, so W-T-Loss reads as T-Loss times about the mean weight. Two axes may be given
     in ``axes``; returns the figure.
     """
-    geo, w = _vector(geo_qp, "geo_qp"), _vector(weights, "weights")
+    pair = "one per query-positive pair"
+    geo, w = as_numbers(geo_qp, "geo_qp", 1, pair), as_numbers(weights, "weights", 1, pair)
     if len(w) != len(geo):
         raise ValueError(f"weights has {len(w)} values for {len(geo)} distances: give one weight per pair")
     if (geo < 0).any():

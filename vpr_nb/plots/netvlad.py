@@ -8,18 +8,9 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
+from ._inputs import as_numbers
+
 CLUSTER_CMAP = "tab20"   # cluster k gets colour k (mod 20), as in the notebook's cluster maps
-
-
-def _array(x, name: str, ndim: int) -> np.ndarray:
-    arr = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
-    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number) or arr.ndim != ndim or 0 in arr.shape:
-        raise ValueError(f"{name} must be a non-empty {ndim}-D array of numbers, got {arr.dtype} of shape "
-                         f"{tuple(arr.shape)}")
-    arr = arr.astype(np.float64)
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} contains NaN or inf")
-    return arr
 
 
 def plot_netvlad(image, assignment, residuals, axes=None):
@@ -36,11 +27,11 @@ def plot_netvlad(image, assignment, residuals, axes=None):
     img = np.asarray(image)
     if img.ndim != 3 or img.shape[-1] != 3 or img.dtype != np.uint8:
         raise ValueError(f"image must be one uint8 image of shape (H, W, 3), got {img.dtype} {img.shape}")
-    a = _array(assignment, "assignment", 3)
+    a = as_numbers(assignment, "assignment", 3)
     if (a < 0).any() or not np.allclose(a.sum(0), 1.0, atol=1e-3):
         raise ValueError("assignment must be a soft assignment, (K, h, w) non-negative and summing to 1 over the K "
                          "clusters at every position (the softmax of Eq. 3); did you pass (h, w, K) or logits?")
-    v = _array(residuals, "residuals", 2)
+    v = as_numbers(residuals, "residuals", 2)
     k = a.shape[0]
     if v.shape[0] != k:
         raise ValueError(f"residuals has {v.shape[0]} rows for the {k} clusters of assignment: "
