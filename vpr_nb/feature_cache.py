@@ -28,7 +28,7 @@ splits (1,599 images) take 84.3 MiB and the tiny route's (1,434 images) 75.6 MiB
 the maps but changes descriptors by about 1e-4 (measured in ``bench/bench_frozen_cache.py``), more than the
 1e-5 the cached path must stay within, so it is only an option. Beyond ``max_bytes`` (maps and keys) new maps
 are computed and not stored (counted in ``bypassed``). Maps are stored channels-last (``[h, w, C]``), the
-layout the course's images give them, so a batch of hits is handed back without a copy.
+layout the course's images give them, so a batch of hits is handed back without a copy. In use::
 
     cache = FrozenFeatureCache()
     with cache.attached(model.backbone):

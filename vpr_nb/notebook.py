@@ -1,6 +1,6 @@
 """The setup every course notebook runs first: profile, budgets, threads, seeds, paths.
 
-A notebook's second cell (tagged ``parameters``) holds ``PROFILE = "ci"``; its setup cell then calls
+A notebook's second cell (tagged ``parameters``) holds ``PROFILE = "ci"``; its setup cell then calls::
 
     SETUP = vpr_nb.notebook.setup(PROFILE)                  # one torch thread, seed 0, the course's paths
     BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(epochs=1, seeds=[0]),

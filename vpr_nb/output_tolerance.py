@@ -47,7 +47,7 @@ def _value(token: str) -> float:
 
 def tolerant_equal(reference: str, test: str, abs_tol: float, rel_tol: float = 0.0) -> bool:
     """True when ``test`` is ``reference`` with every decimal number within the tolerance
-    (|test − ref| <= max(abs_tol, rel_tol·|ref|)) and everything else identical."""
+    (``|test − ref| <= max(abs_tol, rel_tol·|ref|)``) and everything else identical."""
     if reference == test:
         return True
     ref_parts, test_parts = _DECIMAL.split(reference), _DECIMAL.split(test)

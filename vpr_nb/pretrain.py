@@ -26,7 +26,7 @@ local term on shifted copies of the same image         0.799  0.603  35.3 / 70.9
  (+ a GroupNorm on the last layer, 8 groups; pinned)
 the same on the features after the ReLU                0.758  0.704  8.2 / 81.2   0.78 / 0.10  0.66 /0.54
 **condition twins, shifted** (the default)             0.786  0.715  45.8 / 69.6  0.11 / 0.29  0.66 /0.76
- (the same, pinned: the committed checkpoint)           0.748  0.693  47.6 / –     0.12 / –     0.65 /0.76
+(the same, pinned: the committed checkpoint)           0.748  0.693  47.6 / –     0.12 / –     0.65 /0.76
 condition twins, weight 0.15                           0.648  0.637  59.7 / 72.2  0.07 / 0.32  0.67 /0.68
 =====================================================  =====  =====  ===========  ===========  ===========
 

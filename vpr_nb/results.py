@@ -339,7 +339,7 @@ def mean_std(values, what: str = "mean_std values") -> tuple[float, float]:
 
 
 def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None, lower_is_better: bool = False) -> str:
-    """A sentence on ``a − b`` over paired seeds: a verdict only when |mean| > 2 standard errors.
+    """A sentence on ``a − b`` over paired seeds: a verdict only when ``|mean|`` > 2 standard errors.
 
     ``lower_is_better`` for metrics such as a mis-ordering probability (then a negative difference
     makes ``a`` the better one). Every value must be a finite number: a NaN / inf raises ValueError

@@ -22,15 +22,15 @@ One idea per module, in the spirit of pytorch-metric-learning's ``losses/``; eve
 Loss objects, for the batch sources of :mod:`vpr_nb.training`: each holds its parameters, validated when
 it is built, and calls its loss function with them (the same floating-point operations):
 
-==============================  ==============  ============================================  ===============
-object                          paper equation  parameters                                    source
-==============================  ==============  ============================================  ===============
-:class:`TripletLoss`            Eq. (3)         ``margin``                                    TripletSource
-:class:`WeightedTripletLoss`    Eq. (4) x (3)   ``margin``, ``sigma``, ``eps``                TripletSource
-:class:`CETripletLoss`          Eqs. (5)-(8)    (none)                                        TripletSource
-:class:`DWTripletLoss`          Eq. (9)         ``sigma``, ``eps``                            TripletSource
-:class:`MultiSimilarityLoss`    Wang Eq. (6)    ``alpha``, ``beta``, ``base``, ``miner_epsilon``  PlaceBatchSource
-==============================  ==============  ============================================  ===============
+============================  ==============  ================================================  ================
+object                        paper equation  parameters                                        source
+============================  ==============  ================================================  ================
+:class:`TripletLoss`          Eq. (3)         ``margin``                                        TripletSource
+:class:`WeightedTripletLoss`  Eq. (4) x (3)   ``margin``, ``sigma``, ``eps``                    TripletSource
+:class:`CETripletLoss`        Eqs. (5)-(8)    (none)                                            TripletSource
+:class:`DWTripletLoss`        Eq. (9)         ``sigma``, ``eps``                                TripletSource
+:class:`MultiSimilarityLoss`  Wang Eq. (6)    ``alpha``, ``beta``, ``base``, ``miner_epsilon``  PlaceBatchSource
+============================  ==============  ================================================  ================
 
 Every default value lives once, in the ``DEFAULT_*`` constants of its loss's module (``DEFAULT_MARGIN``,
 ``DEFAULT_SIGMA``, ``DEFAULT_EPS`` in :mod:`~vpr_nb.losses.triplet`, ``DEFAULT_MS_*`` in

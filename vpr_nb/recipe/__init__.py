@@ -28,7 +28,7 @@ the *method* (a loss, an aggregator, a batch sampler), so everything else is fix
   (:func:`lr_search`); on a split under ``min_val_queries`` queries the choice needs that many seeds.
 - **Frozen blocks computed once** (:mod:`vpr_nb.feature_cache`): one cache per search, shared by every run.
 
-A notebook states only what deviates: ``dataclasses.replace(RECIPE, batch_size=4)``.
+A notebook states only what deviates: ``dataclasses.replace(RECIPE, batch_size=4)``. In use::
 
     method = Method("T-Loss", "netvlad", loss=TripletLoss())
     search = lr_search(method, ds.train, ds.val, RECIPE, seeds=(0, 1, 2, 3, 4))

@@ -15,8 +15,8 @@ def batch_statistics(batches, utm, descriptors=None) -> dict:
     cosine similarity of the place descriptors (mean of the K image descriptors, L2-normalised).
 
     Returns:
-        ``{"median place distance (m)": ..., "median place similarity": ... (NaN without descriptors),
-        "cities per batch": ...}`` medians over all pairs of all batches (the last key is absent).
+        A dict of medians over all pairs of all batches: ``"median place distance (m)"``, ``"median place
+        similarity"`` (NaN without descriptors) and ``"cities per batch"`` (the last key is absent).
     """
     b = np.asarray(batches)
     if b.ndim == 2:
