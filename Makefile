@@ -3,6 +3,7 @@
 #   make lab         JupyterLab on the notebooks
 #   make reproduce   execute the notebook sequence on the synthetic data, write reports/
 #   make test        the developer environment (requirements-dev.txt) + ruff + pytest + nbval (strict)
+#   make site        the course as a website, built locally into _site/html (no notebook executed)
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -38,7 +39,7 @@ PY          ?= python3.13
 NEWEST_VENV ?= .venv-newest
 TEST_PATHS  ?= tests notebooks $(NBVAL)
 
-.PHONY: venv dev test test-fast test-newest newest-venv newest-constraints lint reproduce pretrain notebook lab bench clean assignments
+.PHONY: venv dev test site test-fast test-newest newest-venv newest-constraints lint reproduce pretrain notebook lab bench clean assignments
 
 venv: $(STAMP)
 
@@ -60,7 +61,7 @@ $(DEV_STAMP): $(STAMP) requirements-dev.txt
 define run_tests
 	$(1)/ruff check
 	$(1)/lint-imports
-	@test -x /usr/bin/chromium || echo "note: /usr/bin/chromium is missing, so the JupyterLab browser test is skipped (sudo apt-get install -y chromium)"
+	@test -x /usr/bin/chromium || echo "note: /usr/bin/chromium is missing, so the browser tests (JupyterLab, the site) are skipped (sudo apt-get install -y chromium)"
 	VPR_NB_ALLOW_SKIP_BROWSER=$$(test -x /usr/bin/chromium && echo 0 || echo 1) $(1)/python -m pytest -p no:cacheprovider -q $(TEST_PATHS)
 endef
 
@@ -97,6 +98,12 @@ notebook: venv
 	@test -n "$(NB)" || { echo 'say which notebooks: make notebook NB=06 (or NB="03 06")'; exit 2; }
 	$(BIN)/python -m vpr_nb.authoring $(foreach n,$(NB),$(wildcard notebooks/$(n)_*.ipynb))
 
+# the course as a website: README (home), the notebooks as stored (never executed), docs/, the package reference
+# and the commands' --help, by Sphinx with warnings as errors (site/build.py; tests/test_site.py builds it too);
+# about 40 s on 2 cores. Prints where to open it: _site/html/index.html
+site: dev
+	$(BIN)/python site/build.py --out _site
+
 test-fast: dev
 	$(BIN)/python -m pytest -p no:cacheprovider -q tests -m "not slow"
 
@@ -120,4 +127,4 @@ bench: dev
 	if [ -n "$$failed" ]; then echo "bench failures:$$failed"; exit 1; fi; echo "all benches ran"
 
 clean:
-	rm -rf reports assignments .pytest_cache
+	rm -rf reports assignments .pytest_cache _site

@@ -46,14 +46,12 @@ extensions = [
     "sphinx.ext.napoleon",              # the few Google-style "Args:" sections
     "vpr_site",
 ]
-templates_path = ["_templates"]
+templates_path = [str(SITE_DIR / "_templates")]      # absolute: autosummary reads it from the (staged) srcdir
 exclude_patterns = ["**/.ipynb_checkpoints"]
-# no "document isn't in a toctree" noise for the staged folder's own files: all of them are in a toctree
-suppress_warnings: list[str] = []
 
 # --- notebooks: never executed ------------------------------------------------------------------------------------
 nb_execution_mode = "off"
-nb_merge_streams = True                 # one block per cell for consecutive prints
+nb_merge_streams = False                # outputs in the order the notebook stores them
 nb_ipywidgets_js: dict = {}             # no widget JavaScript from a CDN: a widget cell shows its static output
 myst_enable_extensions = ["dollarmath", "amsmath"]
 myst_heading_anchors = 4                # GitHub's heading anchors, as README and docs/ link to them
@@ -74,8 +72,8 @@ napoleon_numpy_docstring = False
 
 # --- the theme ------------------------------------------------------------------------------------------------------
 html_theme = "sphinx_book_theme"
-html_title = "vpr-notebooks: visual place recognition from scratch"
-html_static_path: list[str] = []
+html_title = "vpr-notebooks"
+html_static_path = ["_static"]
 html_last_updated_fmt = None
 html_theme_options = {
     "home_page_in_toc": True,
@@ -89,4 +87,3 @@ html_theme_options = {
 vpr_site_root = str(ROOT)
 vpr_site_repository = REPOSITORY or ""
 vpr_site_branch = BRANCH
-vpr_site_reference = WITH_REFERENCE
