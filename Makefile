@@ -99,10 +99,10 @@ notebook: venv
 	$(BIN)/python -m vpr_nb.authoring $(foreach n,$(NB),$(wildcard notebooks/$(n)_*.ipynb))
 
 # the course as a website: README (home), the notebooks as stored (never executed), docs/, the package reference
-# and the commands' --help, by Sphinx with warnings as errors (site/build.py; tests/test_site.py builds it too);
+# and the commands' --help, by Sphinx with warnings as errors (docs/site/build.py; tests/test_site.py builds it too);
 # about 40 s on 2 cores. Prints where to open it: _site/html/index.html
 site: dev
-	$(BIN)/python site/build.py --out _site
+	$(BIN)/python docs/site/build.py --out _site
 
 test-fast: dev
 	$(BIN)/python -m pytest -p no:cacheprovider -q tests -m "not slow"

@@ -1,6 +1,6 @@
-"""The course as a website (site/, ``make site``): built from the stored notebooks, strict, and whole.
+"""The course as a website (docs/site/, ``make site``): built from the stored notebooks, strict, and whole.
 
-The site is built once per run into a temporary folder, with ``site/build.py`` (Sphinx, warnings as errors,
+The site is built once per run into a temporary folder, with ``docs/site/build.py`` (Sphinx, warnings as errors,
 ``--keep-going``; no notebook executed), and checked here:
 
 * it builds with no warning, and a tiny copy with one broken link and one missing figure does not (both are
@@ -40,7 +40,7 @@ from urllib.parse import unquote, urlsplit
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SITE = REPO / "site"
+SITE = REPO / "docs" / "site"
 NOTEBOOKS = sorted((REPO / "notebooks").glob("[0-9][0-9]_*.ipynb"))
 DOCS = sorted((REPO / "docs").glob("*.md"))
 BUILD_TIMEOUT_S = 600           # `make site` must take at most 3 min on 2 cores; this only stops a hung build

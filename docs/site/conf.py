@@ -1,11 +1,11 @@
-"""Sphinx configuration of the course's website (``make site``; ``site/build.py`` stages the sources and runs Sphinx).
+"""Sphinx configuration of the course's website (``make site``; ``docs/site/build.py`` stages the sources and runs Sphinx).
 
 The site is built from what is committed and never executes a notebook: myst-nb reads the stored outputs
 (``nb_execution_mode = "off"``). The source folder Sphinx reads is a staged copy of README.md, docs/*.md,
-notebooks/NN_*.ipynb and site/*.md (``site/build.py``), laid out with the repository's own paths, so a page's
+notebooks/NN_*.ipynb and docs/site/*.md (``docs/site/build.py``), laid out with the repository's own paths, so a page's
 path is its file's path in the repository (what the Binder and Colab launch buttons open).
 
-Settings come from the environment that ``site/build.py`` sets:
+Settings come from the environment that ``docs/site/build.py`` sets:
 
 ``VPR_SITE_ROOT``       the repository (or tiny test copy) being built: its ``pyproject.toml`` and its files
 ``VPR_SITE_REFERENCE``  ``1`` (default): the package reference and the commands' ``--help`` pages; ``0``: none
@@ -24,7 +24,7 @@ from pathlib import Path
 SITE_DIR = Path(__file__).resolve().parent
 sys.path.insert(0, str(SITE_DIR))
 
-import vpr_site  # noqa: E402  (site/vpr_site.py: this site's own Sphinx extension)
+import vpr_site  # noqa: E402  (docs/site/vpr_site.py: this site's own Sphinx extension)
 
 ROOT = Path(os.environ.get("VPR_SITE_ROOT") or SITE_DIR.parent).resolve()
 WITH_REFERENCE = os.environ.get("VPR_SITE_REFERENCE", "1") != "0"

@@ -1,4 +1,4 @@
-"""The course site's own Sphinx extension (loaded by site/conf.py).
+"""The course site's own Sphinx extension (loaded by docs/site/conf.py).
 
 * **Links to repository files.** README.md and docs/*.md link to files that are not pages of the site
   (``LICENSE``, ``binder/``, ``Makefile``, a module of ``vpr_nb``). Such a link becomes a link to the file in

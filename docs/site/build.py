@@ -1,9 +1,9 @@
-"""Build the course's website: ``make site``, or ``python site/build.py [--out DIR] [--root ROOT]``.
+"""Build the course's website: ``make site``, or ``python docs/site/build.py [--out DIR] [--root ROOT]``.
 
 1. Stages the sources into ``OUT/source``, with the repository's own paths: README.md (the home page, with the
-   site's navigation appended to the copy), docs/*.md, notebooks/NN_*.ipynb as stored, and site/*.md (the
+   site's navigation appended to the copy), docs/*.md, notebooks/NN_*.ipynb as stored, and docs/site/*.md (the
    package reference, the commands, about the site). Nothing is written into the repository.
-2. Runs Sphinx (``site/conf.py``) with warnings as errors and ``--keep-going`` (every warning is listed, then the
+2. Runs Sphinx (``docs/site/conf.py``) with warnings as errors and ``--keep-going`` (every warning is listed, then the
    build fails): a broken link, a missing image or a notebook that does not render fails it. No notebook is
    executed.
 3. Prints where to open the site: ``OUT/html/index.html``.
@@ -24,7 +24,7 @@ import tomllib
 from pathlib import Path
 
 SITE_DIR = Path(__file__).resolve().parent
-REPO = SITE_DIR.parent
+REPO = SITE_DIR.parent.parent
 # docs/ pages in the order README's "More material" gives them; any other docs/*.md page follows, by name
 DOCS_ORDER = ("teaching", "reproduction", "performance", "development", "architecture")
 SITE_PAGES = ("reference", "commands", "about")      # this folder's pages, in the navigation's order
@@ -125,9 +125,11 @@ def stage(root: Path, source: Path, with_reference: bool) -> list[str]:
 
 
 def _copy_assets(root: Path, source: Path) -> None:
-    """What the pages show besides themselves: every file under docs/, and images under notebooks/ and the root."""
+    """What the pages show besides themselves: every file under docs/ (but the site's own sources, docs/site/), and
+    images under notebooks/ and the root."""
+    site_sources = root / SITE_DIR.relative_to(REPO)
     for path in (root / "docs").rglob("*"):
-        if path.is_file() and path.suffix != ".md":
+        if path.is_file() and path.suffix != ".md" and site_sources not in path.parents:
             _copy(path, source / path.relative_to(root))
     for path in [*(root / "notebooks").rglob("*"), *root.glob("*")]:
         if path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES and ".ipynb_checkpoints" not in path.parts:
@@ -173,7 +175,7 @@ def build(root: Path, out: Path, *, with_reference: bool = True, jobs: str = "au
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python site/build.py", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python docs/site/build.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--root", type=Path, default=REPO, help="the repository to build (default: this one)")
     parser.add_argument("--out", type=Path, default=REPO / "_site", help="build folder (default: _site)")
     parser.add_argument("--course-only", action="store_true",
