@@ -720,8 +720,8 @@ for name, r in SWEEP.items():
 # the trained NetVLAD-16 uses it (the committed table puts it first). So the features are not what holds
 # SALAD back. Its own rows show what does: its score head starts random (start R@1 about 0.42, where
 # NetVLAD's k-means start is at 0.75, "start R@1" column), and training leaves its plan close to uniform
-# (entropy / log m 0.99 → 0.96, cluster cosine 0.99 → 0.77 in the plan table): from 554 training queries the
-# heads learn little assignment. SALAD's heads train on GSV-Cities' tens of thousands of places.
+# (entropy / log m 0.99 → 0.96, cluster cosine 0.99 → 0.77 in the plan table): from the tiny city's few hundred
+# training queries the heads learn little assignment. SALAD's heads train on GSV-Cities' tens of thousands of places.
 
 # %% [markdown]
 # ## Graded exercise: Eq. (4) without intra-normalisation
@@ -922,10 +922,10 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 #   collapse either way: the paper-init row ends with distinct cluster vectors (cosine 0.90) and level with
 #   the standardised one (+0.018 ± 0.021, within 2 SE), so the step is a better start, not a better end.
 # * **Under the course recipe every triplet-trained row beats its own start** (controls), each trained until
-#   validation stopped improving (best epochs 1-16 of up to 24, the table). **At their usual sizes NetVLAD-16
-#   (2048-D) leads, GeM (128-D) is second and SALAD (576-D) third**: NetVLAD − GeM = +0.041 ± 0.006,
-#   SALAD − GeM = −0.052 ± 0.015, SALAD − NetVLAD = −0.093 ± 0.019. NetVLAD above GeM is the literature's
-#   order; SALAD's place is not.
+#   validation stopped improving (best epochs 1-16, the table; no run reached the recipe's epoch cap).
+#   **At their usual sizes NetVLAD-16 (2048-D) leads, GeM (128-D) is second and SALAD (576-D) third**:
+#   NetVLAD − GeM = +0.041 ± 0.006, SALAD − GeM = −0.052 ± 0.015, SALAD − NetVLAD = −0.093 ± 0.019.
+#   NetVLAD above GeM is the literature's order; SALAD's place is not.
 # * **At equal size the assignment matters, in NetVLAD's favour**: NetVLAD-4 beats SALAD-4 (512-D, 4 clusters
 #   each; −0.038 ± 0.010) and is level with GeM-128 (within 2 SE). Size helps NetVLAD (16 clusters over 4:
 #   +0.052 ± 0.013) but not SALAD (576-D with 16 clusters vs 512-D with 4: within 2 SE).
@@ -934,7 +934,7 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 #   NetVLAD gains from 2 to 16 clusters (0.657 → 0.758). SALAD's score head starts random (start R@1 0.42 vs
 #   NetVLAD's k-means start 0.75) and its trained plan stays near uniform (entropy 0.96 of $\log m$, cluster
 #   cosine 0.77). The paper's heads train on DINOv2 features over GSV-Cities' tens of thousands of places,
-#   not on 554 training queries of a procedural city.
+#   not on the few hundred training queries of a tiny procedural city.
 # * The paper's loss and batches: the Multi-Similarity loss on random P × K place batches trains SALAD level
 #   with hard-negative triplets (+0.016 ± 0.022, within 2 SE) and sharpens its plan the most (entropy 0.86,
 #   cluster cosine 0.51), but never moves GeM from its start (best epoch 0 on every seed; its control fails,
