@@ -59,7 +59,7 @@ from vpr_nb.training import TrainConfig, TripletSource, mean_pairwise_cosine, tr
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
 # the recipe's schedule: 14 epochs with StepLR(5, 0.5), i.e. lr 0.05, 0.025, 0.0125; the ci profile squeezes
 # it into 3 epochs with StepLR(1, 0.5), the same three learning rates for one epoch each, so that the
-# notebook takes under a minute of CPU time (about 4 s per epoch on one core); ablations: two more
+# notebook takes under a minute of CPU time (about 7 s per epoch on one core); ablations: two more
 # trainings of the recipe
 BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(epochs=3, step_size=1, ablations=False),
                                 reproduce=dict(epochs=14, step_size=5, ablations=True))
