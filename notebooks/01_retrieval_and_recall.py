@@ -191,9 +191,9 @@ print(f"query 0: inner products {np.round(ip[0, :3], 3)} -> squared L2 {np.round
 # * **random CNN + average pooling**: `build_model("small_cnn", "mean")` with its random initial weights
 #   (seeded), Eq. (1), 128 dims.
 #
-# The synthetic world is tuned so that these baselines are poor but not hopeless: raw-pixel R@1 between
-# 0.05 and 0.40 and random-CNN R@1 well below 0.6 on the tiny city test split, which leaves room for
-# the training of the next notebooks (target ≥ 0.70).
+# The synthetic world is tuned so that these baselines are poor but not hopeless. The targets on the tiny
+# city test split: raw-pixel R@1 between 0.05 and 0.40, random-CNN R@1 well below 0.6. That leaves room
+# for the training of the next notebooks (target ≥ 0.70).
 
 # %%
 vpr_nb.seed_everything(0)
@@ -254,7 +254,7 @@ print(f"wrong top-1 answers: {int(wrong.sum())} of {len(correct)}; their median 
 # ## Experiment 2: what makes VPR hard? A knob sweep
 #
 # Raw-pixel R@1 on the tiny city test split as each difficulty knob of `WorldConfig` moves, the others at
-# their defaults (only the test split is generated, so each world takes about a second). Each point
+# their defaults. Only the test split is generated, so each world takes about a second. Each point
 # is the mean over the world seeds; the error bars show the spread (min to max) across seeds. Each world's
 # tiny test split has only a few hundred queries (the count printed under the retrieval grid above), so
 # differences smaller than the seed-to-seed spread printed below are noise.
@@ -301,14 +301,14 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# Read the sweep as a student of VPR, against the printed ranking (a knob whose range is not clearly
-# larger than the seed-to-seed spread has no measurable effect on raw pixels in this budget):
+# Read the sweep against the printed ranking. A knob whose range is not clearly larger than the
+# seed-to-seed spread has no measurable effect on raw pixels at this budget.
 #
 # * **condition strength** changes illumination, palette, fog and noise: the same place in another season or
 #   light is, pixel by pixel, a different image;
 # * **position jitter** acts through parallax (notebook 00, Eq. 3): a query a few metres off the
-#   database camera sees the near facades shifted by many pixels; its range here (0.042) is not clearly
-#   larger than the seed-to-seed spread, so at this budget its effect on raw pixels is barely measurable;
+#   database camera sees the near facades shifted by many pixels. Its range here (0.042) is not clearly
+#   larger than the seed-to-seed spread, so its effect is barely measurable;
 # * **heading jitter** rotates the view, i.e. shifts the whole image sideways;
 # * **occluders** cover a part of the image; a descriptor that already fails on the rest of the image
 #   barely notices them;
@@ -334,40 +334,40 @@ record("01_retrieval_and_recall", {
 # ## Exercises
 #
 # 1. **Cosine vs L2.** Show numerically that without L2 normalisation, ranking by inner product and by L2
-#    distance can disagree (take two database vectors of different lengths).
+#    distance can disagree. Take two database vectors of different lengths.
 #    <details><summary>Hint</summary>Eq. (2) drops $\lVert d \rVert^2$ only because it is 1 for every database
 #    vector. Take the query <code>q = np.array([[1.0, 0.0]])</code>, a short vector pointing its way and a long
-#    one at 45°, e.g. <code>db = np.array([[0.9, 0.0], [3.0, 3.0]])</code>, and rank them with
+#    one at 45°, e.g. <code>db = np.array([[0.9, 0.0], [3.0, 3.0]])</code>. Rank them with
 #    <code>q @ db.T</code> (largest first) and with <code>retrieve_by_hand(db, q, 2)</code> (smallest squared
 #    distance first).</details>
 # 2. **Recall@N by hand, differently.** Rewrite `recall_by_hand` with the rank of the *first* positive of
-#    each query, and derive R@N for every N at once from the histogram of those ranks.
-#    <details><summary>Hint</summary>For query <code>i</code>, <code>hits = np.isin(idx[i], positives[i])</code>;
-#    if <code>hits.any()</code>, <code>np.argmax(hits)</code> is the (0-based) rank of its first positive,
-#    otherwise give it rank <code>K</code>. R@N is then the share of ranks below N,
-#    <code>np.cumsum(np.bincount(ranks, minlength=K + 1))[N - 1] / len(ranks)</code>, and must reproduce the
+#    each query. Then get every R@N from a histogram of these ranks.
+#    <details><summary>Hint</summary>Let <code>hits = np.isin(idx[i], positives[i])</code> for query <code>i</code>.
+#    If <code>hits.any()</code>, <code>np.argmax(hits)</code> is the (0-based) rank of its first positive;
+#    otherwise give it rank <code>K</code>. R@N is then the share of ranks below N:
+#    <code>np.cumsum(np.bincount(ranks, minlength=K + 1))[N - 1] / len(ranks)</code>. It must reproduce the
 #    printed <code>{1: 0.226, 5: 0.604, 10: 0.761, 20: 0.887}</code> from <code>idx_hand</code> and
 #    <code>pos_hand</code>.</details>
 # 3. **Radius.** Evaluate the raw-pixel baseline with $r = 10$ m and $r = 50$ m. Why does R@1 grow with
-#    $r$, and why is a fixed $r$ essential when comparing methods across papers?
+#    $r$? Why is a fixed $r$ essential when comparing methods across papers?
 #    <details><summary>Hint</summary>Keep the raw-pixel ranking <code>idx_lib</code> and change only the
-#    positives: <code>recall_at_n(idx_lib, positives_within(city.db_utm, city.q_utm, 10.0), NS)</code>, then
+#    positives. Use <code>recall_at_n(idx_lib, positives_within(city.db_utm, city.q_utm, 10.0), NS)</code>, then
 #    50.0. The retrieval does not change, only which answers count as correct.</details>
 # 4. **Which condition is hardest?** Split the city raw-pixel R@1 by query condition (`city.q_condition`,
-#    `city.condition_names`). Does the ranking match what you saw in notebook 00?
-#    <details><summary>Hint</summary><code>correct</code> (computed for the retrieval grid above) says, for each
-#    query of the seed-0 city, whether the first raw-pixel answer is a positive; average it over
-#    <code>city.q_condition == c</code> for each condition <code>c</code>, labelled
-#    <code>city.condition_names[c]</code>. Each condition has only about 60 of the 318 queries, so repeat on
+#    `city.condition_names`). Does the ranking match notebook 00?
+#    <details><summary>Hint</summary>Use <code>correct</code> from the retrieval grid above. For each query of
+#    the seed-0 city, it says whether the first raw-pixel answer is a positive. Average it over
+#    <code>city.q_condition == c</code> for each condition <code>c</code> (label:
+#    <code>city.condition_names[c]</code>). Each condition has only about 60 of the 318 queries, so repeat on
 #    <code>worlds["city", 1]</code> before you rank them.</details>
 # 5. **A better untrained descriptor.** Try `build_model("small_cnn", "gem")` and `"max"` pooling with random
 #    weights, or raw pixels of a 2× downsampled image. Do any of them beat raw pixels here?
-#    <details><summary>Hint</summary>Build each model as <code>random_cnn</code> is built
-#    (<code>vpr_nb.seed_everything(0)</code>, then <code>build_model("small_cnn", "gem")</code>) and describe the
-#    images with <code>compute_descriptors(model, images)</code>; for the downsampled pixels average 2×2 blocks,
-#    <code>images.reshape(len(images), 16, 2, 24, 2, 3).mean((2, 4))</code>, before
-#    <code>raw_pixel_descriptors</code>. Compare on every seed of <code>SEEDS</code>, as the baseline table does:
-#    the typical seed-to-seed spread is printed under the knob sweep.</details>
+#    <details><summary>Hint</summary>Build each model like <code>random_cnn</code>. Call
+#    <code>vpr_nb.seed_everything(0)</code>, then <code>build_model("small_cnn", "gem")</code>, and describe the
+#    images with <code>compute_descriptors(model, images)</code>. For the downsampled pixels, average 2×2 blocks
+#    before <code>raw_pixel_descriptors</code>: <code>images.reshape(len(images), 16, 2, 24, 2, 3).mean((2, 4))</code>.
+#    Compare on every seed of <code>SEEDS</code>, as the baseline table does. The typical seed-to-seed spread is
+#    printed under the knob sweep.</details>
 #
 # ## Takeaways
 #
@@ -376,29 +376,28 @@ record("01_retrieval_and_recall", {
 # * Recall@N, Eq. (4), counts a query as solved if any of the first N results is within 25 m; queries
 #   without a positive are excluded.
 # * Without learning, raw pixels and a random CNN retrieve the right place only occasionally (the numbers
-#   above). Of the synthetic world's difficulty knobs, heading jitter and condition changes move raw-pixel
-#   R@1 the most, aliasing (few facade types) next, position jitter and occluders hardly at this budget
-#   (the knob sweep). The following notebooks learn descriptors that do much better.
+#   above). In the knob sweep, heading jitter and condition changes move raw-pixel R@1 the most. Aliasing
+#   (few facade types) comes next; position jitter and occluders hardly matter at this budget. The following notebooks learn descriptors that do much better.
 
 # %% [markdown]
 # ## Self-check
 #
-# 1. Why may `vpr_nb` search with faiss's inner-product index when the task asks for the database image
-#    nearest in L2 distance?
+# 1. Why may `vpr_nb` use faiss's inner-product index to find the image nearest in L2 distance?
 #    <details><summary>Answer</summary>The descriptors are L2-normalised, so by Eq. (2)
 #    $\lVert q - d \rVert^2 = 2 - 2\langle q, d \rangle$: the largest inner product is the smallest distance.
 #    The faiss cell shows it: the same top-20 indices for 1.000 of the entries. Without the normalisation the
 #    two rankings can disagree (Exercise 1).</details>
 # 2. Raw pixels reach R@1 = 0.226 but R@10 = 0.761 on the seed-0 city test split. What does R@10 count that
-#    R@1 does not, and why can R@N never fall as N grows?
-#    <details><summary>Answer</summary>R@10 counts a query as solved when any of its first 10 answers lies within
-#    25 m, not only the first. A query solved within the first N answers is solved within any longer list, which
-#    starts with the same N; with N as large as the database every query with a positive is solved.</details>
+#    R@1 does not? Why can R@N never fall as N grows?
+#    <details><summary>Answer</summary>R@10 counts a query if any of its first 10 answers is within 25 m.
+#    R@1 checks only the first. A query solved within the first N answers is solved within any longer list,
+#    which starts with the same N. With N as large as the database, every query with a positive is
+#    solved.</details>
 # 3. In the knob sweep the occluder rate moves raw-pixel R@1 by 0.011 across its values and the heading jitter
-#    by 0.104. Which of the two has a measurable effect in this run, and how do you tell?
-#    <details><summary>Answer</summary>Only the heading jitter: compare each range with the typical
+#    by 0.104. Which of the two has a measurable effect here, and how do you tell?
+#    <details><summary>Answer</summary>Only the heading jitter. Compare each range with the typical
 #    seed-to-seed spread at one setting, 0.032. The heading jitter's 0.104 is about three times that spread (it
-#    shifts the whole image sideways); the occluders' 0.011 lies well inside it, so at this budget it is
+#    shifts the whole image sideways). The occluders' 0.011 lies well inside it, so at this budget it is
 #    noise.</details>
 
 # %% [markdown]

@@ -18,20 +18,15 @@
 # %% [markdown]
 # # 08 · From the synthetic world to the papers' tables
 #
-# **Aim.** Put the papers' published numbers next to what this course measures, and give the exact
-# commands that retrain each paper's setup on the real datasets. You will
+# **Aim.** Put the papers' published numbers next to this course's, and give the commands
+# that retrain each paper's setup on the real datasets. You will
 #
 # * see how a *preset* of `python -m vpr_nb.train` encodes a paper's training recipe, and derive one
 #   override by hand;
-# * run the reproduction command itself on the synthetic city (the CI budget is small; `make reproduce`
-#   runs it longer) and read its `results.json`;
-# * read the published tables of DW-T-Loss (Xiong et al.), DINOv2-SALAD (Izquierdo & Civera, CVPR 2024)
-#   and SALAD + CliqueMining (ECCV 2024) beside this notebook's own synthetic run; the synthetic results of
-#   notebooks 01–07 are listed beside them only when this notebook runs inside `make reproduce` (which also
-#   writes them to `reports/results.md`; the stored output says so), and runs of your own when you ask for
-#   them;
-# * list the implementation details that can move these numbers (margins, thresholds,
-#   query subsets, Nordland protocol) and which choice each preset makes.
+# * run the reproduction command on the synthetic city and read its `results.json`;
+# * read the published tables of DW-T-Loss, DINOv2-SALAD and SALAD + CliqueMining beside this notebook's
+#   synthetic run;
+# * list the implementation details that can move these numbers, and which choice each preset makes.
 
 # %% tags=["parameters", "grade-deps:ex-08-overrides-between"]
 PROFILE = "ci"            # "ci": 2 epochs of the synthetic preset; "reproduce": the preset's full 14 epochs
@@ -58,8 +53,8 @@ BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(epochs=2),   # epochs of the sy
 # %% [markdown]
 # ## Theory: a reproduction is a configuration
 #
-# A training run is fully described by five groups of choices, the five sections of the typed config in
-# `vpr_nb/config.py` (each a dataclass that holds every default once; a preset holds only its deviations):
+# A training run is fully described by the five sections of the typed config in `vpr_nb/config.py`. Each
+# section holds every default once; a preset holds only its deviations.
 #
 # | section | what it fixes | DW-T-Loss on Pittsburgh30k | DINOv2-SALAD on GSV-Cities |
 # |---|---|---|---|
@@ -69,16 +64,16 @@ BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(epochs=2),   # epochs of the sy
 # | `train` | optimiser, schedule, epochs, seed | SGD 1e-4, momentum 0.9, wd 1e-3, StepLR(5, 0.5), 30 epochs, seed 123 | AdamW 6e-5, wd 9.5e-9, LinearLR 1 → 0.2 over 4000 steps, 4 epochs × ⌈places / 60⌉ steps |
 # | `eval` | Recall@N, queries without a positive | N = 1, 5, 10, 20; they count as misses (NetVLAD's convention) | N = 1, 5, 10; excluded (MSLS's official evaluation) |
 #
-# The loss of the DW-T run is Eq. (9) of DW-T-Loss in notebook 03's notation, $L_{DW} = -\sum w \cdot \log \hat d_n$,
-# with $\hat d_n = e^{d_n} / (e^{d_p} + e^{d_n})$ the softmax of Eqs. (5)–(6) and the weight of Eq. (4),
-# $w = \frac{1 + \varepsilon}{g_{qp} / \sigma + \varepsilon} - 1$; SALAD's is the Multi-Similarity loss,
-# Eq. (6) of Wang et al. (notebook 07).
+# The DW-T run's loss is Eq. (9) of DW-T-Loss in notebook 03's notation, $L_{DW} = -\sum w \cdot \log \hat d_n$.
+# Here $\hat d_n = e^{d_n} / (e^{d_p} + e^{d_n})$ is the softmax of Eqs. (5)–(6) and
+# $w = \frac{1 + \varepsilon}{g_{qp} / \sigma + \varepsilon} - 1$ the weight of Eq. (4). SALAD's loss is the
+# Multi-Similarity loss, Eq. (6) of Wang et al. (notebook 07).
 
 # %% [markdown]
 # ## Build it: one override by hand
 #
 # `--set section.key=value` changes one entry of the preset. By hand that is a deep copy and one
-# assignment; `resolve_config` does the same, parses each value by its field's type and rejects keys that
+# assignment. `resolve_config` does the same, parses each value by its field's type and rejects keys that
 # no section knows.
 
 # %%
@@ -99,11 +94,9 @@ except ValueError as err:
 # %% [markdown]
 # ## Use `vpr_nb`: the presets and their commands
 #
-# Each preset below is printed with the command that runs it. Real-data presets need the dataset's
-# location (`--set data.root=...`); the formats are those of `vpr_nb.datasets.load` (Pittsburgh `.mat`,
-# gmberton's `@`-named folders, MSLS CSVs, GSV-Cities dataframes, Nordland). Add
-# `torchrun --nproc_per_node N -m vpr_nb.train ...` to train on several GPUs or machines
-# (DistributedDataParallel; tested in CI with 2 CPU processes).
+# Each preset is printed with the command that runs it. Real-data presets need `--set data.root=...`,
+# a dataset that `vpr_nb.datasets.load` reads. To train on several GPUs or
+# machines, start it with `torchrun --nproc_per_node N -m vpr_nb.train ...` (DistributedDataParallel).
 
 # %%
 ROOTS = {"pitts": "/data/Pittsburgh", "gsv-cities": "/data/GSVCities", "msls": "/data/msls"}
@@ -120,10 +113,10 @@ for name in sorted(PRESETS):
 # %% [markdown]
 # ## Experiment: the reproduction command on the synthetic city
 #
-# `run` is what `python -m vpr_nb.train` calls. We run the `synthetic-city-triplet` preset (the recipe
-# of notebook 02) into a temporary folder and read back what it wrote: the resolved config,
-# the per-epoch history and the test Recall@N. In the CI profile it trains for 2 epochs only, so its
-# Recall@1 is well below notebook 02's; `make reproduce` runs the preset's full 14 epochs.
+# `run` is what `python -m vpr_nb.train` calls. We run the `synthetic-city-triplet` preset (notebook 02's
+# recipe) in a temporary folder. Then we read back the resolved config, the per-epoch history and the test
+# Recall@N. In CI it trains 2 epochs only, so its Recall@1 is well below notebook 02's; `make reproduce`
+# runs the preset's full 14 epochs.
 
 # %%
 epochs = BUDGET["epochs"]
@@ -151,18 +144,17 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 1.** The reproduction command's run of `synthetic-city-triplet` (as read back from its
-# `results.json`): mean training loss per epoch (left), validation Recall@1 per epoch and the test Recall@1
-# of the best-validation weights (right, dashed).
+# **Figure 1.** The `synthetic-city-triplet` run, read back from its `results.json`. Left: mean training
+# loss per epoch. Right: validation Recall@1 per epoch; dashed, the test Recall@1 of the best-validation
+# weights.
 
 # %% [markdown]
 # ## The papers' tables beside ours
 #
-# Published numbers (R@1 / R@5 / R@10, %) as collected in the course's reference notes: DW-T-Loss's
-# Tables II (four losses, VGG16 + NetVLAD-64) and III (max / mean pooling, T-Loss vs DW-T-Loss, "-W") on
-# Pittsburgh30k test, DINOv2-SALAD's and CliqueMining's headline numbers. The DW-T-Loss numbers are single
-# runs with no seed spread reported; notebook 03 prints them beside its multi-seed analogues and compares
-# rankings and gaps, never absolute values.
+# Published numbers (R@1 / R@5 / R@10, %). First the headline numbers of DINOv2-SALAD and CliqueMining.
+# Then DW-T-Loss on Pittsburgh30k test: Table II (four losses, VGG16 + NetVLAD-64) and Table III
+# (max / mean pooling; "-W" marks DW-T-Loss). The DW-T-Loss numbers are single runs; notebook 03
+# compares only rankings and gaps with them.
 
 # %%
 PAPER = [
@@ -248,12 +240,12 @@ plt.show()
 
 # %% [markdown]
 # **Figure 2.** Published R@1 of DINOv2-SALAD with and without CliqueMining on MSLS Challenge, Nordland
-# and MSLS Val (the ECCV 2024 paper's table), axis from 0.
+# and MSLS Val (the ECCV 2024 table), axis from 0.
 
 # %% [markdown]
 # ## Details that move the numbers, and what the presets do
 #
-# The "effect" column says how each detail acts on the numbers; this course measures none of these effects.
+# This course measures none of the effects in the "effect" column.
 #
 # | detail | variants in public code | effect | presets here |
 # |---|---|---|---|
@@ -272,12 +264,12 @@ record("08_reproduction", {"synthetic-city-triplet (epochs=%d)" % epochs: {f"R@{
 # %% [markdown]
 # ## Graded exercise: the overrides between two configs
 #
-# The inverse of an override: write `overrides_between(base, target)` for two resolved configs (dicts of
-# sections, each a dict of values, as `resolve_config` returns them; the `"preset"` entry is not a section):
-# the sorted list of `"section.key=value"` strings, one per value that differs, such that
-# `resolve_config(preset, overrides_between(base, target)) == target` when `base` is `preset`'s config. Write
-# strings as they are and every other value as JSON (`json.dumps`). Plain Python (no `vpr_nb`). Grading runs
-# only the notebook's import cells and your solution cell.
+# The inverse of an override. Write `overrides_between(base, target)` for two resolved configs, as
+# `resolve_config` returns them: dicts of sections, each a dict of values (the `"preset"` entry is not a
+# section). Return the sorted list of `"section.key=value"` strings, one per value that differs. Then
+# `resolve_config(preset, overrides_between(base, target)) == target` when `base` is `preset`'s config.
+# Write strings as they are and every other value as JSON (`json.dumps`). Plain Python (no `vpr_nb`).
+# Grading runs only the notebook's import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-08-overrides-between", "locked": false, "schema_version": 3, "solution": true}
 def overrides_between(base, target):
@@ -328,9 +320,9 @@ check("overrides_between", [Case(f"--set {sets} on dwt-pitts30k", (base, resolve
 # %% [markdown]
 # ## Graded exercise: predict, then measure what "queries without a positive" do to Recall@1
 #
-# Two conventions meet in the tables above: a query with no database image within the positive radius
-# either **counts as a miss** (`"all"`: NetVLAD's code, gmberton's benchmark, GSV-Cities) or is **left out**
-# (`"exclude"`: MSLS's official evaluation).
+# Two conventions meet in the tables above. A query with no database image within the positive radius
+# either **counts as a miss** (`"all"`: NetVLAD's code, gmberton's benchmark, GSV-Cities) or is
+# **left out** (`"exclude"`: MSLS's official evaluation).
 #
 # **Predict first:** on the same retrievals, which convention gives the higher (or equal) Recall@1, whatever
 # the model? Replace the `raise` below by `HIGHER_CONVENTION = "..."` with one of `"all"`, `"exclude"`,
@@ -354,11 +346,11 @@ check("HIGHER_CONVENTION", [Case("the convention with the higher Recall@1 on the
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Then measure.** Write `recall_at_1_both(top1_correct, has_positive)` for two boolean numpy arrays over the
-# queries: whether the top-1 retrieval lies within the positive radius, and whether the query has any
-# database image within it. Return `{"all": ..., "exclude": ...}`, the Recall@1 under each convention, as
-# Python floats, in numpy (no `vpr_nb`). How far apart are the two for a test set in which 10 % of the
-# queries have no positive and the model solves 60 % of the others?
+# **Then measure.** Write `recall_at_1_both(top1_correct, has_positive)` for two boolean numpy arrays over
+# the queries. The first says whether the top-1 retrieval lies within the positive radius; the second,
+# whether the query has any database image within it. Return `{"all": ..., "exclude": ...}`, the Recall@1
+# under each convention, as Python floats, in numpy (no `vpr_nb`). How far apart are the two when 10 % of
+# the queries have no positive and the model solves 60 % of the others?
 
 # %% nbgrader={"grade": false, "grade_id": "ex-08-conventions", "locked": false, "schema_version": 3, "solution": true}
 def recall_at_1_both(top1_correct, has_positive):
@@ -391,80 +383,74 @@ check("recall_at_1_both", [
 # %% [markdown]
 # ## Exercises
 #
-# 1. Run `python -m vpr_nb.train --preset synthetic-city-dw --out results/city-dw` and
-#    `--preset synthetic-city-triplet --out results/city-t`, then set `RUNS_DIR = "../results"` in the
-#    parameters cell and re-run this notebook: both appear as synthetic runs. Which loss wins, and is the gap
-#    bigger than the seed spread of notebook 03?
-#    <details><summary>Hint</summary>Run the two commands from the repository root (the notebook looks for
-#    <code>../results</code> relative to <code>notebooks/</code>); two runs are one seed each, so compare the gap
-#    with the seed-to-seed standard deviation that notebook 03's tables print.</details>
+# 1. Train two runs from the repository root: `python -m vpr_nb.train --preset synthetic-city-dw --out results/city-dw`
+#    and `--preset synthetic-city-triplet --out results/city-t`. Set `RUNS_DIR = "../results"` in the
+#    parameters cell and re-run this notebook. Which loss wins? Is the gap above notebook 03's seed spread?
+#    <details><summary>Hint</summary>Two runs are one seed each. Compare the gap with notebook 03's
+#    seed-to-seed standard deviation.</details>
 # 2. Evaluate your run on the gmberton-format fixture:
 #    `python -m vpr_nb.evaluate --run results/city-t --set data.format=gmberton --set data.root=data_fixtures/gmberton/pitts30k --set data.image_size=[32,48] --out results/city-t-eval`.
-#    Why is the number meaningless (look at the fixture's size)?
+#    Why is the number meaningless?
 #    <details><summary>Hint</summary>Count the fixture's database and query images (<code>ls</code> its
-#    folders): with that many queries, one query more or less moves Recall@1 by how much?</details>
-# 3. Change one detail of the table above in a preset (e.g. `--set source.num_negatives=5`) and predict
-#    the direction of the change before running it.
-#    <details><summary>Hint</summary>Write the prediction down first, with a reason from the "effect"
-#    column; then run the preset twice with two seeds (<code>--set train.seed=...</code>) to see whether the
-#    change is larger than the seed spread.</details>
+#    folders). How much does one query more or less move Recall@1?</details>
+# 3. Change one detail of the table above in a preset, e.g. `--set source.num_negatives=5`. Predict the
+#    direction of the change first.
+#    <details><summary>Hint</summary>Give a reason from the "effect" column. Then run the preset with two
+#    seeds (<code>--set train.seed=...</code>): is the change larger than the seed spread?</details>
 #
 # ## Takeaways
 #
 # * A reproduction is a configuration: the presets encode each paper's data, model, batch source and
-#   optimiser, and every value can be overridden and is saved beside the results.
-# * The same loop and presets train the tiny synthetic world on a CPU (the run above) and read the real
-#   datasets' formats (the fixtures of Exercise 2). The course has run them on the CPU only: the GPU and
-#   `torchrun` paths are written, but no number in this notebook comes from them or from a real dataset.
-# * Published numbers depend on protocol details (query subsets, Nordland ground truth, image size);
-#   compare like with like, and say which protocol a number follows.
+#   optimiser. Every value can be overridden and is saved beside the results.
+# * The same loop and presets train the synthetic world on a CPU (the run above) and read the real
+#   datasets' formats (Exercise 2). The course has run them on the CPU only: no number here
+#   comes from the GPU or `torchrun` paths, or from a real dataset.
+# * Published numbers depend on protocol details (query subsets, Nordland ground truth, image size).
+#   Compare like with like, and say which protocol a number follows.
 
 # %% [markdown]
 # ## Self-check
 #
-# 1. What are the five sections of a run's configuration, and where does each default live?
+# 1. Name the five sections of a run's configuration. Where does each default live?
 #    <details><summary>Answer</summary><code>data</code>, <code>model</code>, <code>source</code>,
-#    <code>train</code> and <code>eval</code>; each default lives once, in the typed config of
-#    <code>vpr_nb/config.py</code>, and a preset holds only its deviations.</details>
+#    <code>train</code>, <code>eval</code>. Each default lives once, in <code>vpr_nb/config.py</code>; a
+#    preset holds only its deviations.</details>
 # 2. Why can two papers' Nordland numbers differ by several points for the same model?
-#    <details><summary>Answer</summary>The ground truth differs: ±1 frame (VPR-Bench, GSV-Cities) against 25 m
-#    or ±10 frames; a wider tolerance counts more retrievals as correct, so the same model scores higher (the
-#    table of details).</details>
-# 3. What does <code>--set section.key=value</code> do, and what protects you from a typo in the key?
-#    <details><summary>Answer</summary>It changes one entry of the preset's config (a deep copy and one
-#    assignment, parsed by the field's type); <code>resolve_config</code> rejects a key that no section
-#    knows.</details>
+#    <details><summary>Answer</summary>Their ground truth differs. It is ±1 frame (VPR-Bench, GSV-Cities), 25 m
+#    or ±10 frames. A wider tolerance counts more retrievals as correct, so the same model scores
+#    higher.</details>
+# 3. What does <code>--set section.key=value</code> do? What catches a typo in the key?
+#    <details><summary>Answer</summary>It changes one entry of the preset's config, parsed by the field's
+#    type. The function <code>resolve_config</code> rejects a key that no section knows.</details>
 
 # %% [markdown]
 # ## References
 #
 # * *Distance-Ranking-Based Weighted Triplet Loss for Visual Place Recognition* (Xiong, Xu & Meng): the
-#   DW-T-Loss paper (VGG16 + NetVLAD, Pittsburgh30k). No public code was found; the course's reference notes
-#   do not hold a verified link, so none is given here.
+#   DW-T-Loss paper (VGG16 + NetVLAD, Pittsburgh30k).
 # * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (DINOv2-SALAD).
 #   CVPR 2024. [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code:
 #   [github.com/serizba/salad](https://github.com/serizba/salad).
 # * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place
 #   Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422); code:
 #   [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining).
-# * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
+# * R. Arandjelović et al. *NetVLAD: CNN architecture for weakly supervised
 #   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247); code:
-#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad) (hard-negative cache, margin,
-#   Pittsburgh `dbStruct` files).
+#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
 # * K. Simonyan, A. Zisserman. *Very Deep Convolutional Networks for Large-Scale Image Recognition* (VGG16).
 #   ICLR 2015. [arXiv:1409.1556](https://arxiv.org/abs/1409.1556).
 # * M. Oquab et al. *DINOv2: Learning Robust Visual Features without Supervision.* TMLR 2024.
 #   [arXiv:2304.07193](https://arxiv.org/abs/2304.07193); code:
 #   [github.com/facebookresearch/dinov2](https://github.com/facebookresearch/dinov2).
-# * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition.*
+# * A. Ali-bey et al. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition.*
 #   Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239); code:
 #   [github.com/amaralibey/gsv-cities](https://github.com/amaralibey/gsv-cities).
-# * F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
+# * F. Warburg et al. *Mapillary Street-Level
 #   Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020; code:
 #   [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
-# * G. Berton, R. Mereu, G. Trivigno, C. Masone, G. Csurka, T. Sattler, B. Caputo. *Deep Visual Geo-localization
+# * G. Berton et al. *Deep Visual Geo-localization
 #   Benchmark.* CVPR 2022. [arXiv:2204.03444](https://arxiv.org/abs/2204.03444); code:
 #   [github.com/gmberton/deep-visual-geo-localization-benchmark](https://github.com/gmberton/deep-visual-geo-localization-benchmark),
 #   datasets: [github.com/gmberton/VPR-datasets-downloader](https://github.com/gmberton/VPR-datasets-downloader).
-# * N. Sünderhauf, P. Neubert, P. Protzel. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
+# * N. Sünderhauf et al. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
 #   All Four Seasons.* ICRA 2013 Workshop on Long-Term Autonomy (Nordland).
