@@ -19,17 +19,16 @@
 # # 00 · The synthetic world: what visual place recognition is
 #
 # **Aim.** Meet the task and the dataset of the whole course. *Visual place recognition* (VPR) answers
-# "where was this photo taken?" by **retrieval**: a query image is compared with a database of
-# geotagged images, and the geotag of the most similar database image is the answer. It counts as
-# correct when that database image was taken within 25 m of the query (the Pittsburgh / MSLS
-# convention). In this notebook you will
+# "where was this photo taken?" by **retrieval**. A query image is compared with a database of geotagged
+# images, and the geotag of the most similar one is the answer. The answer counts as correct when that
+# image was taken within 25 m of the query (the Pittsburgh / MSLS convention). In this notebook you will
 #
-# * generate the two synthetic worlds every later notebook uses (`make_dataset("city")`,
-#   `make_dataset("route")`), look at their maps, splits, conditions and geotags;
-# * compute the *positives* of a query (the database images that count as correct) by hand and with `vpr_nb`;
-# * see, in pixels, why VPR is hard: **parallax** (nearby cameras see shifted content),
+# * generate the course's two synthetic worlds (`make_dataset("city")`,
+#   `make_dataset("route")`) and look at their maps, splits, conditions and geotags;
+# * compute a query's *positives* (the database images that count as correct) by hand and with `vpr_nb`;
+# * see in pixels why VPR is hard: **parallax** (nearby cameras see shifted content),
 #   **perceptual aliasing** (different places look alike) and **condition change** (the same place looks different);
-# * see how much a few metres change an image, and how content near the camera changes that;
+# * see how much a few metres change an image, with and without content near the camera;
 # * read the table of difficulty knobs that notebook 01 sweeps.
 
 # %% tags=["parameters"]
@@ -67,9 +66,8 @@ print("world size:", SIZE)
 #
 # $$\mathcal{P}(q) = \{\, i : \lVert g_q - g_i \rVert_2 \le r \,\} \tag{1}$$
 #
-# with $r = 25$ m for street-level datasets (Pittsburgh, MSLS; the `city` preset) and, for a
-# frame-aligned route (Nordland; the `route` preset), the same frame $\pm 1$, which is Eq. (1) with
-# $r$ just above the frame spacing.
+# with $r = 25$ m for street-level datasets (Pittsburgh, MSLS; the `city` preset). For a frame-aligned
+# route (Nordland; the `route` preset) it is the same frame $\pm 1$: Eq. (1) with $r$ just above the frame spacing.
 #
 # **Retrieval.** A model maps each image to a global descriptor $f(x) \in \mathbb{R}^D$ with
 # $\lVert f(x) \rVert_2 = 1$ and returns the nearest database image
@@ -85,8 +83,8 @@ print("world size:", SIZE)
 # $$\Delta u = f_{px}\, \frac{t}{Z}\ \text{pixels}. \tag{3}$$
 #
 # Near facades ($Z \approx 10$ m) slide across the image while the far skyline ($Z \approx 1000$ m)
-# stays put: nearby cameras share content, and content changes *continuously* with distance. That is
-# what makes a 25 m radius meaningful, and also why a query 20 m away from its positive can look quite different.
+# stays put. Nearby cameras share content, and content changes *continuously* with distance. That makes
+# a 25 m radius meaningful, and it is why a query 20 m from its positive can look quite different.
 #
 # **Perceptual aliasing.** Facades are drawn from a small library of $K$ styles (`num_facade_types`).
 # With $B$ buildings each style appears about $B/K$ times, so two places far apart can look alike.
@@ -120,10 +118,9 @@ def positives_by_hand(db_utm, q_utm, radius):
 # ## The two presets
 #
 # `make_dataset(preset, seed=0, size="tiny")` renders the whole world deterministically from the seed.
-# `"city"` is Pittsburgh-like (a street grid, database images every 10 m in 4 headings, queries at
-# random street positions, other conditions); `"route"` is Nordland-like (one long railway with roadside
-# objects beside it, a camera turned 45° to the side taking a frame every 5 m, database in summer and queries
-# in winter, frame-aligned).
+# `"city"` is Pittsburgh-like: a street grid, database images every 10 m in 4 headings, queries at random
+# street positions in other conditions. `"route"` is Nordland-like: one long railway with roadside objects,
+# a camera turned 45° to the side taking a frame every 5 m, database in summer, queries in winter, frame-aligned.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -146,11 +143,10 @@ for ds in (city, route):
 # %% [markdown]
 # ### Maps and splits
 #
-# Train / val / test are **geographically disjoint** bands (the gap between them is wider than the
-# positive radius), so no test query has a positive among the training images: a model cannot pass the
-# test by memorising the training places. Colours mark the splits only (blue train, orange val, green
-# test; dots database, crosses queries); the scene is drawn in greys: walls as light grey lines, trees as
-# dark grey dots.
+# Train / val / test are **geographically disjoint** bands, with gaps wider than the positive radius.
+# No test query has a positive among the training images, so memorising the training places cannot pass
+# the test. Colours mark the splits only (blue train, orange val, green test; dots database, crosses
+# queries); light grey lines are walls, dark grey dots trees.
 
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(10, 8.5))
@@ -176,7 +172,7 @@ for ds in (city, route):
 #
 # Row 0 is the database condition; the other rows are query conditions. Look for the season palette
 # (foliage, snow on the ground), the illumination and sun direction, fog, rain noise, lit windows at
-# dusk, and the occluders (coloured boxes: cars and pedestrians).
+# dusk, and the occluders (coloured boxes).
 
 # %%
 plots.condition_grid(city.test, per_condition=8, seed=0)
@@ -238,10 +234,10 @@ print("hand-made positives == vpr_nb positives for", city_test.name, "and", rout
 #
 # ### How many positives does a query have?
 #
-# In the city a place is photographed in 4 headings every 10 m along the street, so a 25 m radius holds
-# a few dozen database images, **most of them looking another way** (a positive by geotag need not
-# share any content with the query). On the route a query has its own frame and the neighbour(s) within
-# one frame spacing.
+# In the city a place is photographed in 4 headings every 10 m along the street. A 25 m radius holds a
+# few dozen database images, **most of them looking another way**: a positive by geotag need not share
+# any content with the query. On the route a query has its own frame and the neighbour(s) within one
+# frame spacing.
 
 # %%
 n_city = np.array([len(p) for p in city_test.positives()])
@@ -260,8 +256,8 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# A query and all its positives, nearest first (title: distance in metres and relative heading). Only
-# the positives that look in roughly the same direction share content with the query.
+# A query and its 15 nearest positives (title: distance in metres and relative heading). Only the framed
+# positives, which look roughly the query's way, share content with it.
 
 # %%
 qi = 5
@@ -279,9 +275,9 @@ plt.show()
 # %% [markdown]
 # ### Parallax: one place seen from nearby positions
 #
-# Top: consecutive route frames (5 m apart), all in the database condition: roadside objects, trees and
-# houses near the track slide across and out of view while the hills on the horizon stay fixed (Eq. 3). Bottom: city database
-# images that look the same way from places 0, 10, 20, … m down the street.
+# Top: consecutive route frames (5 m apart), all in the database condition. Roadside objects, trees and
+# houses near the track slide across and out of view; the hills on the horizon stay fixed (Eq. 3).
+# Bottom: city database images that look the same way from places 0, 10, 20, … m down the street.
 
 # %%
 start = 40
@@ -304,13 +300,12 @@ plots.image_grid(city_test.db_images[on_street], titles=[f"{x:.0f} m" for x in d
 plt.show()
 
 # %% [markdown]
-# How quickly does appearance change with distance? Cosine similarity between database images of the
-# same heading as a function of the distance between their cameras, for two pixel descriptors: raw
-# pixels (flattened, L2-normalised: the baseline of notebook 01) and *centred* pixels (the mean database
-# image subtracted first). Raw cosines all sit near 0.85, because every image shares the same layout
-# of sky, facades and road; centring removes that shared part and shows the decay clearly. Either way,
-# similarity falls to the level of unrelated pairs within a few tens of metres: beyond that, pixels
-# alone cannot tell whether two images show the same place.
+# How quickly does appearance change with distance? Below: the cosine similarity of same-heading
+# database images against the distance between their cameras. Two pixel descriptors: raw pixels
+# (flattened, L2-normalised: notebook 01's baseline) and *centred* pixels (minus the mean database image).
+# Raw cosines all sit near 0.85, because every image shares the same layout of sky, facades and road.
+# Centring removes that shared part and shows the decay. Either way, similarity falls to the level of
+# unrelated pairs within a few tens of metres: beyond that, pixels alone cannot tell the same place.
 
 # %%
 x = city.db_images.reshape(len(city.db_images), -1).astype(np.float32) / 255.0
@@ -344,17 +339,19 @@ plt.show()
 # %% [markdown]
 # ### Close, but not there: how much do a few metres change?
 #
-# A place-recognition model has to tell the right frame from one a few metres away, and it can only do that
-# if a few metres change the image. Each row below shows route database frames 2.5 m apart (summer), then
-# the query of the first frame (winter), in two versions of the route: one **without near content** (the
-# camera looks along the track; near it there are only trees and the odd pole: `roadside_spacing=0`,
-# `camera_yaw=0`) and the **default route**, which has more content per metre: roadside objects (posts,
-# boards, signs) every metre on each side (`roadside_spacing=1`) and the camera turned 45° to the side
-# (`camera_yaw=45`), so that near content sweeps across the image. The printout counts, over the test
-# frames, how often the same-season frame $s$ metres ahead is *closer* in raw pixels than the frame's own
-# cross-season query (`vpr_nb.probes.near_duplicate_probe`, derived by hand
-# in notebook 07). When that holds for most frames, the neighbour is a near-duplicate: a loss that treats
-# it as a negative pushes apart two views that differ less than the positives do.
+# A model can tell the right frame from one a few metres away only if a few metres change the image.
+# Below, two versions of the route:
+#
+# * **Without near content**: the camera looks along the track, with only trees and the odd pole near it
+#   (`roadside_spacing=0`, `camera_yaw=0`).
+# * The **default route**: roadside objects (posts, boards, signs) every metre on each side
+#   (`roadside_spacing=1`) and the camera turned 45° to the side (`camera_yaw=45`), so near content
+#   sweeps across the image.
+#
+# The printout gives the share of test frames whose same-season frame $s$ metres ahead is *closer* in raw
+# pixels than their own cross-season query (`vpr_nb.probes.near_duplicate_probe`, derived in notebook 07).
+# Where that holds for most frames, the neighbour is a near-duplicate. A loss that treats it as a negative
+# pushes apart two views that differ less than the positives do.
 
 # %%
 NO_NEAR_CONTENT = {"roadside_spacing": 0.0, "camera_yaw": 0.0}
@@ -374,18 +371,17 @@ for label, shares in NEAR_DUPLICATES.items():
     print(f"{label:>24}: " + "   ".join(f"s = {k:4.1f} m: {v:.3f}" for k, v in shares.items()))
 
 # %% [markdown]
-# **Figure.** Route frames 2.5 m apart in summer (first six images of each row) and the winter query of the
-# first frame (last image). Top: the route without near content, where consecutive frames differ in a few
-# far pixels. Bottom: the default route, with roadside objects and a sideways camera: each step of 2.5 m moves
-# the near objects across the image. The printout under the images gives the effect in numbers.
+# **Figure.** Route frames 2.5 m apart in summer (first six images of each row), then the first frame's
+# winter query. Top: without near content, consecutive frames differ in a few far pixels. Bottom: on the
+# default route, each 2.5 m step moves the near objects across the image.
 
 # %% [markdown]
 # ### Perceptual aliasing: two places, one facade style
 #
-# For every city database image we cast the central ray and find the building it hits (the scene is
-# available as `dataset.extra["scene"]`: wall segments with a facade `style` id). Among pairs of images
-# **more than 100 m apart** whose central building has the same style, we show the pair whose raw pixels
-# are most alike, next to each image's true neighbour 10 m down the street.
+# For every city database image we cast the central ray and find the building it hits (the scene,
+# `dataset.extra["scene"]`, holds wall segments with a facade `style` id). Among image pairs **more than
+# 100 m apart** whose central buildings share a style, we show the pair with the most alike raw pixels.
+# Beside them: each image's true neighbour 10 m down the street.
 
 # %%
 scene = city.extra["scene"]
@@ -440,35 +436,34 @@ record("00_synthetic_world", {
 # ## Exercises
 #
 # 1. **Radius.** Recompute the city positives with $r = 10$ m and $r = 50$ m (`ds.positives(radius)`).
-#    How does the mean number of positives scale with $r$, and why roughly like $r$ rather than $r^2$?
-#    <details><summary>Hint</summary><code>np.mean([len(p) for p in city_test.positives(10.0)])</code>, and the
-#    same with 50.0. The database cameras stand only on the streets, every 10 m, in 4 headings: how many camera
-#    positions does a disc of radius $r$ cover on one straight street, and what changes once the disc reaches a
+#    How does the mean number of positives scale with $r$? Why roughly like $r$ rather than $r^2$?
+#    <details><summary>Hint</summary><code>np.mean([len(p) for p in city_test.positives(10.0)])</code>, and
+#    the same with 50.0. The database cameras stand only on the streets, every 10 m, in 4 headings. How many
+#    camera positions does a disc of radius $r$ cover on one straight street? What changes once it reaches a
 #    crossing or a parallel street?</details>
 # 2. **Parallax.** With Eq. (3), how far must the camera move for a facade 10 m away to shift by half
 #    the image width? And the skyline at 1000 m? Check the first against the route frames above.
 #    <details><summary>Hint</summary>Solve Eq. (3) for $t$ with $\Delta u = W/2 = 24$ px and the printed
-#    $f_{px} = 24.0$ px; the table's columns for $Z = 10$ m and $Z = 1000$ m check your answer. The route's
-#    camera is turned 45° to the side, so about 3.5 m of each 5 m step between frames is sideways to its view:
-#    see how far a house near the track moves from one frame to the next.</details>
-# 3. **Aliasing.** Regenerate the city with `num_facade_types=2` and with `num_facade_types=40`, rerun the
-#    aliasing cell and compare the cosine of the most alike far-apart pair. Which setting makes VPR harder?
-#    <details><summary>Hint</summary><code>city = make_dataset("city", seed=0, size=SIZE, num_facade_types=2)</code>,
-#    then re-run the cosine-vs-distance cell (it makes <code>descs</code> and <code>sub</code>) and the aliasing
-#    cell, and read the printed cosine of the most alike pair (0.965 with the default 10 styles). One pair is a
-#    single sample; notebook 01's knob sweep measures the same knob in Recall@1. Regenerate the default city
-#    afterwards.</details>
-# 4. **Conditions.** Generate `make_dataset("city", condition_strength=0.0)`: what do the queries look
+#    $f_{px} = 24.0$ px. The table's columns for $Z = 10$ m and $Z = 1000$ m check your answer. The route's
+#    camera is turned 45° to the side, so about 3.5 m of each 5 m step is sideways to its view.</details>
+# 3. **Aliasing.** Regenerate the city with `num_facade_types=2` and with `num_facade_types=40`. Which setting
+#    makes VPR harder? Compare the cosine of the most alike far-apart pair.
+#    <details><summary>Hint</summary><code>city = make_dataset("city", seed=0, size=SIZE, num_facade_types=2)</code>.
+#    Then rerun the cosine-vs-distance cell (it makes <code>descs</code> and <code>sub</code>) and the aliasing
+#    cell. The default 10 styles give 0.965. One pair is a single sample; notebook 01 measures the knob in
+#    Recall@1. Regenerate the default city afterwards.</details>
+# 4. **Conditions.** Generate `make_dataset("city", condition_strength=0.0)`. What do the queries look
 #    like now, and which difficulties remain?
-#    <details><summary>Hint</summary><code>c0 = make_dataset("city", seed=0, size=SIZE, condition_strength=0.0)</code>,
-#    then <code>plots.condition_grid(c0.test, per_condition=8, seed=0)</code>: compare each query row with row 0,
-#    the database condition. The knob table above lists what <code>condition_strength</code> leaves alone.</details>
-# 5. **Splits.** Why would randomly assigning images to train/test (instead of geographic bands) give an
-#    over-optimistic test score?
-#    <details><summary>Hint</summary>With random assignment, a test query's place would also be photographed by
-#    training images a few metres away (the cosine table above: images less than 15 m apart are the most
-#    alike). What could a model that memorised its training images answer for that query, and would that work
-#    in a city it has never seen?</details>
+#    <details><summary>Hint</summary>Make
+#    <code>c0 = make_dataset("city", seed=0, size=SIZE, condition_strength=0.0)</code>. Show
+#    <code>plots.condition_grid(c0.test, per_condition=8, seed=0)</code> and compare each query row with row 0,
+#    the database condition. The knob table above lists what <code>condition_strength</code> leaves
+#    alone.</details>
+# 5. **Splits.** Why would a random train/test assignment (not geographic bands) give an over-optimistic
+#    test score?
+#    <details><summary>Hint</summary>A random split puts training images a few metres from each test query.
+#    In the cosine table above, images less than 15 m apart are the most alike. What could a model that
+#    memorised its training images answer? Would that work in a city it has never seen?</details>
 #
 # ## Takeaways
 #
@@ -476,34 +471,33 @@ record("00_synthetic_world", {
 #   correct when it lies within $r$ (25 m, or ±1 frame on a route) of the query, Eq. (1)–(2).
 # * A positive by geotag need not look like the query (other headings, other conditions); a wrong
 #   answer can look very much like it (aliasing). Both make raw pixels a weak descriptor.
-# * Content changes continuously with distance because of parallax, Eq. (3): near structure moves, the skyline does not.
-#   A few metres change an image only when there is content near the camera: without it the same-season
-#   frame 5 m ahead is closer in raw pixels than the cross-season query for 0.91 of the test frames; on the
-#   default route, with roadside objects and a sideways camera, for 0.16 (the near-duplicate printout).
+# * Content changes continuously with distance because of parallax, Eq. (3): near structure moves, the skyline
+#   does not. A few metres change an image only when there is content near the camera. Without it, the
+#   same-season frame 5 m ahead is closer in raw pixels than the cross-season query for 0.91 of the test
+#   frames; on the default route for 0.16.
 # * Every difficulty knob sits in `WorldConfig`; splits are geographically disjoint; the same seed gives
 #   the same world. Notebook 01 turns these images into descriptors and measures Recall@N.
 
 # %% [markdown]
 # ## Self-check
 #
-# 1. A city test query has 29.31 positives on average. Why do only a few of the positives in the grid of a
-#    query and its positives share content with it?
+# 1. A city test query has 29.31 positives on average. In the grid of a query and its nearest positives, why
+#    do only a few share content with it?
 #    <details><summary>Answer</summary>Positives are defined by geotag alone, Eq. (1): every database image
 #    within 25 m, taken in 4 headings every 10 m. Only those that look roughly the query's way (within 45°, the
-#    framed ones) see the same facades; the others look down the street or at the other side.</details>
+#    framed ones) see the same facades. The others look down the street or at the other side.</details>
 # 2. Raw-pixel cosines between images of the same heading are about 0.85 whether their cameras are 20 m or
 #    500 m apart. Why, and what does the centred version show?
 #    <details><summary>Answer</summary>Every image shares the same layout of sky, facades and road, which
-#    dominates the raw cosine. Subtracting the mean database image removes that shared part: the centred cosine
-#    falls from 0.258 (0–5 m) to 0.101 (5–15 m) and to about 0, the level of unrelated pairs, from 15 m on. Beyond
-#    a few tens of metres pixels alone cannot tell the same place from another.</details>
-# 3. On the route without near content, the same-season frame 5 m ahead is closer in raw pixels than the
-#    frame's winter query for 0.910 of the test frames; on the default route for 0.164. What does that mean for
-#    a training loss, and what makes the difference?
-#    <details><summary>Answer</summary>Without near content the frame 5 m ahead is a near-duplicate: a loss that
+#    dominates the raw cosine. Subtracting the mean database image removes that shared part. The centred cosine
+#    falls from 0.258 (0–5 m) to 0.101 (5–15 m), then to about 0 (unrelated pairs) from 15 m on.</details>
+# 3. The same-season frame 5 m ahead is closer in raw pixels than the frame's winter query for 0.910 of the
+#    test frames without near content, and for 0.164 on the default route. What does that mean for a
+#    training loss, and what makes the difference?
+#    <details><summary>Answer</summary>Without near content the frame 5 m ahead is a near-duplicate. A loss that
 #    treats it as a negative pushes apart two images that differ less than a query and its positive. The default
-#    route has roadside objects every metre and a camera turned 45° to the side, so near content sweeps across
-#    the image and a few metres do change it (parallax, Eq. 3).</details>
+#    route has roadside objects every metre and a camera turned 45° to the side. Near content sweeps across
+#    the image, so a few metres do change it (parallax, Eq. 3).</details>
 
 # %% [markdown]
 # ## References
@@ -513,16 +507,16 @@ record("00_synthetic_world", {
 #   [doi:10.1109/TRO.2015.2496823](https://doi.org/10.1109/TRO.2015.2496823) (the task, "place", conditions).
 # * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
 #   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247) (Pittsburgh, positives
-#   within 25 m, geographically split evaluation); code: [github.com/Relja/netvlad](https://github.com/Relja/netvlad),
-#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+#   within 25 m, geographically split evaluation); code: [Relja/netvlad](https://github.com/Relja/netvlad),
+#   [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
 # * A. Torii, J. Sivic, T. Pajdla, M. Okutomi. *Visual Place Recognition with Repetitive Structures.* CVPR 2013
 #   (the Pittsburgh 250k street-view database the `city` preset imitates; repetitive facades = aliasing).
 # * F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
 #   Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020 (conditions, the 25 m threshold);
-#   code: [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
+#   code: [mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
 # * N. Sünderhauf, P. Neubert, P. Protzel. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
 #   All Four Seasons.* ICRA 2013 Workshop on Long-Term Autonomy (the Nordland railway the `route` preset imitates).
 # * G. Berton, R. Mereu, G. Trivigno, C. Masone, G. Csurka, T. Sattler, B. Caputo. *Deep Visual Geo-localization
 #   Benchmark.* CVPR 2022. [arXiv:2204.03444](https://arxiv.org/abs/2204.03444); code:
-#   [github.com/gmberton/deep-visual-geo-localization-benchmark](https://github.com/gmberton/deep-visual-geo-localization-benchmark)
+#   [gmberton/deep-visual-geo-localization-benchmark](https://github.com/gmberton/deep-visual-geo-localization-benchmark)
 #   (dataset formats and evaluation conventions).
