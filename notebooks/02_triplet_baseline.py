@@ -18,19 +18,16 @@
 # %% [markdown]
 # # 02 · The triplet baseline: learning a place descriptor
 #
-# **Aim.** Train the first real VPR model of the course: a small CNN with GeM pooling, trained with the
+# **Aim.** Train the course's first real VPR model: a small CNN with GeM pooling, trained with the
 # **triplet margin loss** on NetVLAD-style weakly supervised triplets. You will
 #
-# * derive the triplet loss (Eq. 3 of DW-T-Loss, Xiong, Xu & Meng) in a few lines of torch and check it
-#   against `torch.nn.TripletMarginLoss` and `vpr_nb.losses.triplet_loss`;
-# * see with numbers **why mining matters**: for an untrained network, how many *random* negatives
-#   violate the margin, compared with *hard* (mined) negatives;
-# * see why, in a world with 4 views per place, the positive must face the query's way;
-# * train the recipe with `vpr_nb.training.train` from random weights on the tiny `city` world, far above
-#   the raw-pixel baseline of notebook 01, with learning curves and retrievals;
-# * learn to recognise a **collapsed** run (every image mapped to nearly the same descriptor) from two
-#   numbers the training loop records, and meet the **course backbone**: the pretrained network that
-#   notebooks 03–07 fine-tune, as the papers fine-tune ImageNet-VGG16 and DINOv2.
+# * derive the triplet loss (Eq. 3 of DW-T-Loss) and check it against
+#   `torch.nn.TripletMarginLoss` and `vpr_nb.losses.triplet_loss`;
+# * measure **why mining matters**: how many *random* and how many *hard* negatives violate the margin;
+# * see why, with 4 views per place, the positive must face the query's way;
+# * train the recipe with `vpr_nb.training.train` from random weights, far above the raw pixels of notebook 01;
+# * spot a **collapsed** run (every image mapped to nearly one descriptor) from two recorded numbers;
+# * meet the **course backbone**: the pretrained network that notebooks 03–07 fine-tune.
 #
 # This notebook trains from scratch on purpose: it teaches training. The papers never do.
 
@@ -73,36 +70,34 @@ print(f"profile {PROFILE}: {EPOCHS} epochs, StepLR({STEP_SIZE}, 0.5), ablations 
 # %% [markdown]
 # ## Theory
 #
-# **Triplets.** A *query* $q$, a *positive* $p$ (a database image of the same place) and a *negative*
-# $n$ (a database image of another place) are mapped by the network $f_\theta$ to L2-normalised
-# descriptors; $d(a, b) = \lVert f_\theta(a) - f_\theta(b) \rVert_2$. Retrieval is correct when the
-# positive is nearer to the query than every negative. The **triplet margin loss** (DW-T-Loss, Eq. 3)
-# asks for this with a safety margin $m$:
+# **Triplets.** A *query* $q$, a *positive* $p$ (same place) and a *negative* $n$ (another place) are
+# images. The network $f_\theta$ maps each to an L2-normalised descriptor, and
+# $d(a, b) = \lVert f_\theta(a) - f_\theta(b) \rVert_2$. Retrieval is correct when the positive is nearer to
+# the query than every negative. The **triplet margin loss** (DW-T-Loss, Eq. 3) asks for this with a margin $m$:
 #
 # $$L_T = \sum_{(q, p, n)} \max\big(0,\; d(q, p) - d(q, n) + m\big). \tag{3}$$
 #
-# A triplet whose negative is already farther than $d(q,p) + m$ contributes **zero loss and zero
-# gradient**; only *violating* triplets teach the network anything.
+# A triplet whose negative is already farther than $d(q,p) + m$ gives **zero loss and zero gradient**. Only
+# *violating* triplets teach the network anything.
 #
-# **Weak supervision and mining (NetVLAD, Arandjelović et al. 2016, Sec. 4).** Geotags say which database
-# images are *near* the query, not which show the same content. NetVLAD therefore uses
+# **Weak supervision and mining (NetVLAD, Arandjelović et al. 2016, Sec. 4).** Geotags say which images are
+# *near* the query, not which show the same content. NetVLAD therefore uses
 #
-# * *potential positives*: database images within 10 m; the positive is the one **nearest in descriptor
+# * *potential positives*: database images within 10 m. The positive is the one **nearest in descriptor
 #   space**, $p^* = \arg\min_{p \in \mathcal{P}_{10}(q)} d(q, p)$ (NetVLAD Eq. 7);
-# * *negatives*: images farther than 25 m (the evaluation radius), and among a random sample of them the
-#   $M$ **hardest**, i.e. nearest to the query in descriptor space, refreshed as the network changes.
+# * *negatives*: images farther than 25 m. Of a random sample of them it keeps the $M$ **hardest** (nearest
+#   in descriptor space), refreshed as the network changes.
 #
-# Each query then forms $M$ triplets $(q, p^*, n_j)$, $j = 1..M$. The course's synthetic city has 4
-# database headings per place (like Pittsburgh's 24 views per panorama), so a potential positive 5 m
-# away may look the other way; `max_heading_diff=45` keeps only potential positives facing the query's
-# way (more on this below).
+# Each query then forms $M$ triplets $(q, p^*, n_j)$, $j = 1..M$. Our city has 4 database headings per place,
+# so a potential positive 5 m away may look the other way. `max_heading_diff=45` keeps only potential
+# positives that face the query's way.
 #
-# **GeM pooling** (Radenović, Tolias & Chum, TPAMI 2018, Eq. 3) turns the CNN's feature map, $C$ channels
-# at $n$ positions $x_{c,1..n} \ge 0$, into one $C$-dimensional descriptor, then L2-normalises it:
+# **GeM pooling** (Radenović, Tolias & Chum, TPAMI 2018, Eq. 3) turns a feature map of $C$ channels at $n$
+# positions $x_{c,1..n} \ge 0$ into one $C$-dimensional descriptor, then L2-normalises it:
 #
 # $$f_c = \Big(\frac{1}{n}\sum_{i=1}^{n} x_{c,i}^{\,p}\Big)^{1/p}, \tag{GeM}$$
 #
-# with a learnable exponent $p$ (3 at the start): $p = 1$ is mean pooling, $p \to \infty$ max pooling.
+# The exponent $p$ is learnt (3 at the start): $p = 1$ is mean pooling, $p \to \infty$ max pooling.
 # `vpr_nb.aggregation.GeM` implements it; notebook 04 compares it with NetVLAD.
 
 # %% [markdown]
@@ -128,8 +123,8 @@ plt.show()
 
 # %% [markdown]
 # **Figure 1.** Eq. (3) on this batch. Left: a query (star), its positive (blue) and negatives at their true
-# distances: inside the grey margin band's outer edge a negative is active (red, loss > 0), beyond it satisfied
-# (green). Right: all 40 triplets; those below the line $d(q,n) = d(q,p) + m$ have loss.
+# distances. Negatives inside the grey margin band's outer edge are active (red, loss > 0); those beyond are
+# satisfied (green). Right: all 40 triplets; those below the line $d(q,n) = d(q,p) + m$ have loss.
 
 # %% [markdown]
 # ## Use `vpr_nb`: the same number three ways
@@ -169,10 +164,10 @@ for split in (ds.train, ds.val, ds.test):
 # %% [markdown]
 # ## Why mining matters
 #
-# Take the **untrained** network and mine triplets for every training query in two ways: $M = 5$
-# negatives drawn at random beyond 25 m (`num_candidates = M`), or the 5 hardest of 300 random
-# candidates (NetVLAD). Count the negatives that violate the margin, $d(q, n) < d(q, p^*) + m$: those are
-# the only ones with a non-zero gradient in Eq. (3).
+# Take the **untrained** network and mine triplets for every training query in two ways. Either draw $M = 5$
+# negatives at random beyond 25 m (`num_candidates = M`), or keep the 5 hardest of 300 random candidates
+# (NetVLAD). Then count the negatives that violate the margin, $d(q, n) < d(q, p^*) + m$. Only those give a
+# non-zero gradient in Eq. (3).
 
 # %%
 vpr_nb.seed_everything(0)
@@ -216,17 +211,15 @@ mining = mining_table(model, "untrained network")
 
 
 # %% [markdown]
-# At initialisation every descriptor sits close to every other (a random network maps all street
-# views to nearly the same vector), so almost any negative is within the margin and even random
-# triplets carry loss, though hard ones carry more (the ratio above). The difference grows with
-# training: once the network separates places, most random negatives lie beyond the margin and give no
-# gradient, while most mined ones are still the look-alike places it confuses. The same table for the
-# trained network follows the training below.
+# A random network maps all street views to nearly the same vector. So almost any negative is within the
+# margin, and even random triplets carry loss; hard ones carry more (the ratio above). Once the network
+# separates places, most random negatives give no gradient, while mined ones are still the look-alikes it
+# confuses. The trained network's table comes after training.
 #
 # ### Which way does the positive face?
 #
-# Without the heading filter, $p^*$ is the potential positive nearest in descriptor space. Does it face
-# the query's way? (4 database headings per place, so about 1 in 4 potential positives does.)
+# Without the heading filter, does $p^*$ face the query's way? By chance, about 1 in 4 potential positives
+# does.
 
 # %%
 def heading_diff(a, b):
@@ -243,22 +236,14 @@ print(f"untrained network's chosen positive facing the query's way: {same_way.me
 
 
 # %% [markdown]
-# The untrained network picks the view that faces the query's way more often than chance (0.451 of the
-# queries against 0.251 of the potential positives), but for more than half of the queries it picks a view
-# that shows other facades. Without the filter, those "positives" share no content with the query. What
-# that costs in training is not measured in the stored run: the `reproduce` profile's ablation below trains
-# without the filter, and the `ci` profile stored here skips it. NetVLAD on Pittsburgh uses the plain rule;
-# a plausible reason it works there is that its VGG16 starts from ImageNet weights, which may already prefer
-# the right view. That is a hypothesis: this course does not train from ImageNet weights.
+# The untrained network beats chance: 0.451 of its positives face the query's way, against 0.251 of the
+# potential positives. But for more than half of the queries its "positive" shows other facades. The `reproduce` profile's ablation below measures what this costs in training.
 #
 # ## Experiment: train the recipe
 #
-# Small CNN + GeM, Eq. (3) with $m = 0.1$, $M = 5$ hardest of 300 negatives per query, batch 16, SGD (lr
-# 0.05, momentum 0.9, weight decay $10^{-3}$), the learning rate halved every few epochs, the best epoch
-# on validation kept. The `reproduce` profile trains 14 epochs with StepLR(5, 0.5), so lr 0.05, 0.025 and
-# 0.0125 for about 5 epochs each; the `ci` profile (what is stored here) squeezes the same schedule into 3
-# epochs with StepLR(1, 0.5), one epoch at each of those learning rates, so that the whole notebook takes
-# under a minute of CPU time.
+# Small CNN + GeM, Eq. (3) with $m = 0.1$, and the $M = 5$ hardest of 300 negatives per query. Batch 16, SGD
+# (lr 0.05, momentum 0.9, weight decay $10^{-3}$), the learning rate halved every few epochs. The best epoch
+# on validation is kept. The stored `ci` run trains 3 epochs, one at each of lr 0.05, 0.025 and 0.0125.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -294,13 +279,12 @@ plt.show()
 #
 # Two numbers that `train` records every epoch tell a healthy run from a collapsed one:
 #
-# * the **collapsed loss**: the loss the same batches would have if *every* image had the same descriptor.
-#   For Eq. (3) every triplet then costs exactly the margin, so it is $M \cdot m = 5 \times 0.1 = 0.5$ per
-#   query. A loss that stays near it means the network has not separated anything;
-# * the **mean pairwise cosine** of the validation database descriptors: near 1, all images look alike
-#   to the network.
+# * the **collapsed loss**: the loss if *every* image had the same descriptor. Then every triplet of Eq. (3)
+#   costs exactly the margin: $M \cdot m = 5 \times 0.1 = 0.5$ per query. A loss near it means nothing is
+#   separated;
+# * the **mean pairwise cosine** of the validation database descriptors: near 1, all images look alike.
 #
-# Below, the recipe beside the same recipe with a 10× larger learning rate (0.5), for two epochs.
+# Below, the recipe runs beside the same recipe with a 10× larger learning rate (0.5), for two epochs.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -333,27 +317,21 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 3.** Training health, the recipe (lr 0.05) beside the same recipe at lr 0.5: the loss divided
-# by the collapsed loss (left; 1 means no better than one descriptor for every image), the mean pairwise
-# cosine of the validation database descriptors (middle) and validation Recall@1 (right).
+# **Figure 3.** Training health, the recipe (lr 0.05) against lr 0.5. Left: loss / collapsed loss (1 means
+# no better than one descriptor for every image). Middle: mean pairwise cosine of the validation database
+# descriptors. Right: validation Recall@1.
 
 # %% [markdown]
-# With the large learning rate the loss climbs back to near its collapsed value in the second epoch and
-# the descriptors crowd together (mean cosine near 1) while validation recall falls: the network maps
-# every street view to nearly the same vector, and every triplet again costs about the margin. The
-# recipe's loss falls further below the collapsed value and its descriptors spread out (the mean cosine
-# drops). Whenever a later run disappoints, look at these two columns first.
+# At lr 0.5 the loss climbs back near its collapsed value in the second epoch. The descriptors crowd
+# together (mean cosine near 1) and validation recall falls. The recipe's loss falls further below the
+# collapsed value, and its mean cosine drops. When a later run disappoints, look at these two columns first.
 #
 # ### Test Recall@N against the baselines
 #
-# The last row is the **course backbone** (`vpr_nb.pretrain.course_backbone()`), frozen, with GeM: a
-# wider SmallCNN (48 channels) pretrained once on other synthetic worlds
-# (world seeds ≥ 100, both presets, all conditions; never this world) with the Multi-Similarity loss on its
-# GeM descriptors plus a local contrastive term that keeps its local features diverse (what NetVLAD and
-# SALAD need, notebooks 04–05), the course's stand-in for the
-# ImageNet-VGG16 of DW-T-Loss and the DINOv2 of SALAD. `python -m vpr_nb.pretrain` re-makes it; its card
-# (`vpr_nb/weights/course_backbone.json`) records how. Notebooks 03–07 start from it, as the papers start
-# from theirs.
+# The last row is the frozen **course backbone** (`vpr_nb.pretrain.course_backbone()`) with GeM. It is a
+# wider SmallCNN, pretrained on other synthetic worlds, never on this one. It stands in for the ImageNet-VGG16
+# of DW-T-Loss and the DINOv2 of SALAD. Its card (`vpr_nb/weights/course_backbone.json`) records how it was
+# made. Notebooks 03–07 start from it.
 
 # %%
 te = ds.test
@@ -387,8 +365,7 @@ plt.show()
 # %% [markdown]
 # ### What the trained model retrieves
 #
-# Query (grey frame), then its top-5 database images framed green (within 25 m) or red, labelled with
-# their true distance. Two queries solved at rank 1, two that are not.
+# Figure 5 shows its top-5 answers for four test queries.
 
 # %%
 db_d, q_d = compute_descriptors(model, te.db_images), compute_descriptors(model, te.q_images)
@@ -403,9 +380,9 @@ print(f"wrong top-1: {int((~correct).sum())} of {len(correct)}; median distance 
       f"{np.median(dist_m[~correct, 0]):.0f} m")
 
 # %% [markdown]
-# **Figure 5.** Two test queries solved at rank 1 and two that are not: each row is the query (grey frame)
-# and its top-5 database images, framed green within 25 m and red otherwise, labelled with their true
-# distance.
+# **Figure 5.** Two test queries solved at rank 1 and two that are not. Each row shows the query (grey
+# frame) and its top-5 database images: framed green within 25 m, red otherwise, and labelled with their
+# true distance.
 
 # %% [markdown]
 # ### Mining, revisited with the trained network
@@ -421,12 +398,11 @@ print(f"trained network's chosen positive (no heading filter) facing the query's
 # %% [markdown]
 # ## Ablations (`reproduce` profile)
 #
-# Two more runs of the same recipe, each changing one thing:
+# Two more runs of the recipe, each changing one thing:
 #
-# * **no heading filter** — NetVLAD's plain rule, the positive is the nearest (in descriptor space) of
-#   all images within 10 m, whatever their heading;
-# * **random negatives** — `num_candidates = M`: each query's negatives are the hardest 5 of only 10
-#   random ones (5 fresh + its 5 cached from the last epoch), instead of 5 of about 305.
+# * **no heading filter**: NetVLAD's plain rule, any heading within 10 m;
+# * **random negatives**: `num_candidates = M`, the hardest 5 of only 10 random negatives (5 fresh + 5
+#   cached from the last epoch) instead of 5 of about 305.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -455,10 +431,8 @@ else:
     print("ablations skipped in the ci profile (run with PROFILE = 'reproduce', or see Exercise 1)")
 
 # %% [markdown]
-# In the `reproduce` profile the cell above also prints the ablations' test Recall@N and draws the learning
-# curves of the recipe and of the two ablations (training loss, validation Recall@1). The `ci` profile
-# stored here skips the ablations (the line printed above): this notebook stores no ablation numbers and
-# no figure of them.
+# The stored `ci` run skips the ablations. The `reproduce` profile prints their test Recall@N and draws
+# their learning curves.
 
 # %%
 record("02_triplet_baseline", {
@@ -482,11 +456,11 @@ record("02_triplet_baseline", {
 # ## Graded exercise: Eq. (3) on squared distances
 #
 # The NetVLAD MATLAB code puts the margin on *squared* distances. Write `my_sq_triplet_loss(q, p, n, margin)`
-# for `q`, `p` of shape (B, D) and `n` of shape (B, M, D): the sum over all B·M triplets of
-# $\max(0,\, d(q,p)^2 - d(q,n_j)^2 + m)$ with Euclidean $d$, as a 0-d torch tensor, in plain torch (no
-# `vpr_nb`, no `torch.nn.TripletMarginLoss`). The hidden tests also check what it means for unit vectors,
-# where $d^2 = 2 - 2\cos$. Grading runs only the notebook's import cells and your solution cell, so the
-# cell must not use anything else defined in this notebook.
+# for `q`, `p` of shape (B, D) and `n` of shape (B, M, D). It returns the sum over all B·M triplets of
+# $\max(0,\, d(q,p)^2 - d(q,n_j)^2 + m)$ with Euclidean $d$, as a 0-d torch tensor. Use plain torch (no
+# `vpr_nb`, no `torch.nn.TripletMarginLoss`). The hidden tests also check unit vectors, where
+# $d^2 = 2 - 2\cos$. Grading runs only the import cells and your solution cell, so use nothing else defined
+# in this notebook.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-02-sq-triplet", "locked": false, "schema_version": 3, "solution": true}
 def my_sq_triplet_loss(q, p, n, margin=0.1):
@@ -522,13 +496,12 @@ check("my_sq_triplet_loss", [
 # %% [markdown]
 # ## Graded exercise: predict, then measure Recall@1 at a smaller positive radius
 #
-# A query counts as solved at rank 1 when its nearest database descriptor lies within the positive radius
-# of the query (25 m on the test split). Suppose the radius shrinks to 10 m while the descriptors stay the
-# same.
+# A query is solved at rank 1 when its nearest database descriptor lies within the positive radius (25 m on
+# the test split). Suppose the radius shrinks to 10 m while the descriptors stay the same.
 #
-# **Predict first** (before you measure anything): can Recall@1 rise, does it fall or stay the same, or can
-# it go either way, depending on the model? Replace the `raise` in the cell below by
-# `RADIUS_PREDICTION = "..."` with one of `"rises"`, `"falls or stays"`, `"either way"`.
+# **Predict first.** Can Recall@1 rise, does it fall or stay the same, or can it go either way, depending on
+# the model? Replace the `raise` in the cell below by `RADIUS_PREDICTION = "..."` with one of `"rises"`,
+# `"falls or stays"`, `"either way"`.
 
 # %% tags=["grade-deps:ex-02-radius-predict", "grade-deps:ex-02-radius-measure"]
 import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
@@ -548,13 +521,12 @@ check("RADIUS_PREDICTION", [Case("Recall@1 when the positive radius shrinks from
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Then measure.** Write `recall_at_1(db, q, db_utm, q_utm, radius)` for L2-normalised database and query
-# descriptors (numpy arrays [N, D] and [Q, D]) and their positions in metres ([N, 2] and [Q, 2]): the fraction
-# of queries whose nearest database descriptor (Euclidean distance) lies at most `radius` metres from the
-# query, as a Python float. A query with no database image within `radius` counts as a miss (NetVLAD's
-# convention). Plain numpy (no `vpr_nb`, no faiss). Then, in a new cell, measure it on the trained model's
-# test descriptors, `recall_at_1(db_d, q_d, te.db_utm, te.q_utm, r)` for `r` = 25, 10 and 5: by how much does
-# R@1 change, and does that match your prediction and your reason for it?
+# **Then measure.** Write `recall_at_1(db, q, db_utm, q_utm, radius)`. Its inputs are L2-normalised
+# descriptors (numpy arrays [N, D] and [Q, D]) and positions in metres ([N, 2] and [Q, 2]). It returns, as a
+# Python float, the fraction of queries whose nearest database descriptor (Euclidean) lies at most `radius`
+# metres away. A query with no database image within `radius` is a miss (NetVLAD's convention). Use plain
+# numpy (no `vpr_nb`, no faiss). Then, in a new cell, measure `recall_at_1(db_d, q_d, te.db_utm, te.q_utm, r)`
+# for `r` = 25, 10 and 5. By how much does R@1 change? Does that match your prediction and its reason?
 
 # %% nbgrader={"grade": false, "grade_id": "ex-02-radius-measure", "locked": false, "schema_version": 3, "solution": true}
 def recall_at_1(db, q, db_utm, q_utm, radius):
@@ -606,81 +578,79 @@ check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 qu
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with
-#    `num_candidates=M`. How many epochs does each need to reach the recipe's validation R@1?
-#    <details><summary>Hint</summary><code>train_recipe(**kw)</code> passes its keywords to
-#    <code>TripletSource</code>: compare <code>train_recipe()</code> and
-#    <code>train_recipe(max_heading_diff=HEADING_DIFF, num_candidates=M)</code> with the recipe, epoch by epoch,
-#    through <code>[e["val"][1] for e in hist.epochs]</code>. Use the <code>reproduce</code> budget
-#    (set <code>PROFILE = "reproduce"</code> in the parameters cell): 3 epochs are too few to see a difference.</details>
-# 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on plain
-#    L2). What fraction of mined triplets violates the margin at the end of training in each case?
+# 1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with `num_candidates=M`. How
+#    many epochs does each need to reach the recipe's validation R@1?
+#
+#    <details><summary>Hint</summary>Compare
+#    <code>train_recipe()</code> and <code>train_recipe(max_heading_diff=HEADING_DIFF, num_candidates=M)</code>
+#    epoch by epoch, through <code>[e["val"][1] for e in hist.epochs]</code>. Set
+#    <code>PROFILE = "reproduce"</code>: 3 epochs are too few to see a difference.</details>
+# 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on
+#    plain L2). What fraction of mined triplets violates the margin at the end of training?
+#
 #    <details><summary>Hint</summary>Copy <code>train_recipe</code> and pass <code>TripletLoss(margin=0.3)</code>
-#    to <code>TripletSource</code>. <code>mining_table(net, label)</code> counts violations with the global
-#    <code>MARGIN</code>, so set <code>MARGIN = 0.3</code> in a new cell before calling it (and back to 0.1
-#    afterwards).</details>
-# 3. **Squared distances, trained.** Train the recipe with the graded exercise's loss: pass `TripletSource` a
-#    subclass of `vpr_nb.losses.TripletFamilyLoss` whose `__call__(q, p, n, geo_qp=None)` returns
-#    `my_sq_triplet_loss(q, p, n, margin)`. Which margin on squared distances makes it select the same
-#    violating triplets as $m = 0.1$ on distances, for a positive at $d(q, p) = 0.5$?
-#    <details><summary>Hint</summary>A negative violates Eq. (3) when $d_n < d_p + m$ and the squared form when
-#    $d_n^2 < d_p^2 + m'$. Write both boundaries for $d_p = 0.5$ and ask when they are the same $d_n$. Does one
-#    $m'$ work for every $d_p$?</details>
-# 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is best
-#    here? (Notebook 03 measures it with several seeds.)
+#    to <code>TripletSource</code>.
+#    The function <code>mining_table</code> uses the global <code>MARGIN</code>: set it to 0.3 first, and back
+#    to 0.1 afterwards.</details>
+# 3. **Squared distances, trained.** Train with the graded exercise's loss: pass `TripletSource` a subclass of
+#    `vpr_nb.losses.TripletFamilyLoss` whose `__call__(q, p, n, geo_qp=None)` returns
+#    `my_sq_triplet_loss(q, p, n, margin)`. For $d(q, p) = 0.5$, which squared margin selects the same
+#    violating triplets as $m = 0.1$?
+#
+#    <details><summary>Hint</summary>A negative violates Eq. (3) when $d_n < d_p + m$, and the squared form
+#    when $d_n^2 < d_p^2 + m'$. Equate both boundaries for $d_p = 0.5$. Does one $m'$ work for every
+#    $d_p$?</details>
+# 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is
+#    best here? (Notebook 03 measures it with several seeds.)
+#
 #    <details><summary>Hint</summary>Copy <code>train_recipe</code> with the pooling as an argument and compare
-#    <code>evaluate_model(net, te, NS)</code>. One seed of from-scratch training moves R@1 by several points:
-#    run two or three seeds per pooling before you rank them.</details>
-# 5. **Semi-hard negatives.** FaceNet trains on negatives that are farther than the positive but within
-#    the margin. Implement that selection from the output of `mine_triplets` and compare.
-#    <details><summary>Hint</summary><code>mine(300)</code> returns arrays <code>query</code>,
-#    <code>positive</code> and <code>negatives</code> (indices, -1 where missing); compute $d(q, p)$ and
-#    $d(q, n)$ from <code>q_desc</code> and <code>db_desc</code> as <code>hinge</code> does, and keep the
-#    negatives with $d(q,p) < d(q,n) < d(q,p) + m$. How many queries still have one?</details>
+#    <code>evaluate_model(net, te, NS)</code>. One seed moves R@1 by
+#    several points, so run two or three seeds per pooling.</details>
+# 5. **Semi-hard negatives.** FaceNet trains on negatives farther than the positive but within the margin.
+#    Implement that selection from the output of `mine_triplets` and compare.
+#
+#    <details><summary>Hint</summary>Take the indices from <code>mine(300)</code> (-1 where missing). Compute
+#    $d(q, p)$ and $d(q, n)$ from <code>q_desc</code> and <code>db_desc</code> as <code>hinge</code> does. Keep negatives with $d(q,p) < d(q,n) < d(q,p) + m$. How many queries still
+#    have one?</details>
 #
 # ## Takeaways
 #
-# * Eq. (3) is one line of torch and equals `torch.nn.TripletMarginLoss` (sum reduction) up to its `eps`.
-# * Only margin-violating triplets carry gradient; once the network has learnt something, random
-#   negatives rarely violate the margin (about one in eight after the stored run) while most hard negatives
-#   mined from a descriptor cache still do (the two tables above), so mining decides what the network learns.
-# * Weak GPS supervision needs care: the positive must actually show the query's place. Without a heading
-#   filter the positive a network picks among the images within 10 m faces the query's way only as often as
-#   the fractions printed above say, so this notebook keeps only positives that face the query's way
-#   (`max_heading_diff=45`). NetVLAD on Pittsburgh uses no such filter and still works, plausibly because its
-#   ImageNet pre-trained VGG16 already prefers the right view (a hypothesis, not tested here). What the filter is
-#   worth in recall is the reproduce profile's ablation (Exercise 1); the stored CI run skips it, so this
-#   notebook does not measure it.
-# * A 3-epoch CPU run from random weights lifts test R@1 far above raw pixels (numbers above), though not
-#   to the frozen course backbone's; it has not converged (its validation R@1 still rose from 0.602 to 0.684
-#   in the last epoch of the `ci` run), and one seed of from-scratch training is noisy (Exercise 4).
-# * A collapsed run is easy to spot: its loss climbs back to near the collapsed value ($M \cdot m$ for Eq. 3) and
-#   the mean pairwise cosine of its descriptors approaches 1 (the lr 0.5 run above); the healthy run's
-#   loss falls well below it.
-# * The frozen course backbone, pretrained on other worlds, is compared with the from-scratch model in
-#   the test table above. Notebooks 03–07 fine-tune it, as the papers fine-tune a pretrained backbone,
-#   and change only the loss, the aggregator or the batches.
+# * Eq. (3) is one line of torch. It equals `torch.nn.TripletMarginLoss` (sum reduction) up to its `eps`.
+# * Only margin-violating triplets carry gradient. After training, random negatives rarely violate the
+#   margin (about one in eight), while most mined ones still do. So mining decides what the network learns.
+# * Weak GPS supervision needs care: the positive must show the query's place. Without a heading filter, the untrained network's positive faces the
+#   query's way for only 0.451 of the queries, so this notebook filters by heading. The stored run does not
+#   measure what that is worth in recall (Exercise 1).
+# * A 3-epoch CPU run from random weights lifts test R@1 far above raw pixels, not to the course backbone's.
+#   It has not converged: validation R@1 still rose from 0.602 to 0.684 in the last epoch. One seed is noisy
+#   (Exercise 4).
+# * A collapsed run's loss climbs back near $M \cdot m$ and its mean pairwise cosine approaches 1 (the lr 0.5
+#   run). A healthy run's loss falls well below it.
+# * The test table above compares the from-scratch model with the frozen course backbone. Notebooks 03–07
+#   fine-tune that backbone, as the papers fine-tune a pretrained backbone. They
+#   change only the loss, the aggregator or the batches.
 
 # %% [markdown]
 # ## Self-check
 #
-# 1. A triplet's negative is already farther from the query than $d(q, p) + m$. What does that triplet
-#    contribute to the gradient of Eq. (3), and why does that make mining necessary?
-#    <details><summary>Answer</summary>Nothing: the hinge is at zero, so the loss and its gradient are zero.
-#    Once the network separates places, almost every random negative is like that, so without mining the
-#    hard (look-alike) negatives the batches stop teaching anything (the trained mining table).</details>
+# 1. A triplet's negative is already farther from the query than $d(q, p) + m$. What does it contribute to
+#    the gradient of Eq. (3), and why does that make mining necessary?
+#
+#    <details><summary>Answer</summary>Nothing: the hinge is at zero, so loss and gradient are zero. Once
+#    the network separates places, almost every random negative is like that. Without mined (look-alike)
+#    negatives, the batches stop teaching anything.</details>
 # 2. Why does this notebook keep only potential positives that face the query's way, when NetVLAD's rule on
 #    Pittsburgh does not?
-#    <details><summary>Answer</summary>Every place here is photographed in 4 headings, so a potential
-#    positive 5 m away often shows other facades, and an untrained network picks a view that faces the
-#    query's way for only 0.451 of the queries. NetVLAD's VGG16 starts from ImageNet weights, which plausibly
-#    already prefer the right view (a hypothesis: not tested here); the network trained here with the filter
-#    picks it for 0.908 of the queries.</details>
-# 3. Which two numbers that <code>train</code> records tell you a run has collapsed, and what is the collapsed
+#
+#    <details><summary>Answer</summary>Each place here has 4 headings, so a potential positive 5 m away often
+#    shows other facades. An untrained network picks a view facing the query's way for only 0.451 of the
+#    queries. NetVLAD's VGG16 starts from ImageNet weights, which plausibly already prefer the right view
+#    (untested here). Trained with the filter, our network picks it for 0.908.</details>
+# 3. Which two numbers that <code>train</code> records tell you a run has collapsed? What is the collapsed
 #    loss of Eq. (3) per query with $M = 5$ and $m = 0.1$?
-#    <details><summary>Answer</summary>A loss that stays near the collapsed loss, $M \cdot m = 0.5$ per query
-#    (every triplet costs exactly the margin when all descriptors are equal), and a mean pairwise cosine of the
-#    validation descriptors close to 1.</details>
+#
+#    <details><summary>Answer</summary>A loss that stays near the collapsed loss, $M \cdot m = 0.5$ per
+#    query, and a mean pairwise cosine of the validation descriptors close to 1.</details>
 
 # %% [markdown]
 # ## References
