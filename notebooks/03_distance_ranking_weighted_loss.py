@@ -19,21 +19,16 @@
 # # 03 · DW-T-Loss: distance-weighted and cross-entropy triplet losses
 #
 # **Aim.** Reproduce, in miniature, the loss study of *Distance-Ranking-Based Weighted Triplet Loss for
-# Visual Place Recognition* (Yu Xiong, Shixiong Xu & Gaofeng Meng): an ImageNet-pretrained VGG16 whose
-# last block (conv5) is fine-tuned with NetVLAD-64 on Pittsburgh30k, under four losses. Here the pretrained network is the
-# **course backbone** (`vpr_nb.pretrain.course_backbone`, pretrained on other synthetic worlds), its last
-# block is fine-tuned with **NetVLAD** on the tiny city world. You will
+# Visual Place Recognition* (Yu Xiong, Shixiong Xu & Gaofeng Meng). The paper fine-tunes conv5 of an
+# ImageNet-pretrained VGG16 with NetVLAD-64 on Pittsburgh30k, under four losses. Here we fine-tune the last
+# block of the **course backbone** (`vpr_nb.pretrain.course_backbone`) with **NetVLAD** on the tiny city
+# world. You will
 #
-# * explore the geographic weight of Eq. (4) with sliders for $\sigma$ and $\varepsilon$, and see what
-#   $\sigma = 800$ m does when every positive lies within 10–25 m;
-# * derive the cross-entropy triplet loss, Eqs. (5)–(8), and DW-T-Loss, Eq. (9), in plain torch and check
-#   them against `vpr_nb.losses`;
-# * measure on real triplets how much larger (or smaller) each loss's gradient is than T-Loss's, and see
-#   what the temperature-free softmax of Eqs. (5)–(6) does on descriptors whose distances lie in $[0, 2]$;
-# * fine-tune with T-Loss, W-T-Loss, CE-Loss and DW-T-Loss under the course recipe, everything else equal and
-#   each loss at the learning rate validation chose for it (a **Table II analog**), and max / mean pooling
-#   with T-Loss vs DW-T-Loss (a **Table III analog**), over 5 paired seeds, next to the paper's numbers,
-#   with every comparison made only where its baseline beats its own starting weights;
+# * explore the geographic weight of Eq. (4), and see what $\sigma = 800$ m does to positives within 10–25 m;
+# * build the cross-entropy triplet loss, Eqs. (5)–(8), and DW-T-Loss, Eq. (9), in plain torch;
+# * measure each loss's gradient against T-Loss's, and see what a softmax without temperature does;
+# * fine-tune under four losses (a **Table II analog**) and two poolings (a **Table III analog**), over 5
+#   paired seeds, next to the paper's numbers;
 # * see when the distance weight is just a learning-rate factor: under SGD (the paper's optimiser) or Adam.
 
 # %% tags=["parameters", "grade-deps:ex-03-ce-tau"]
@@ -72,8 +67,8 @@ print(f"profile {PROFILE}")
 # ## Theory
 #
 # Notation as in notebook 02: $d_p = d(q, p)$ and $d_n = d(q, n)$ are Euclidean distances between
-# L2-normalised descriptors (so $0 \le d \le 2$), and each query forms $M$ triplets with its positive and
-# its $M$ hardest negatives. The baseline is the triplet margin loss
+# L2-normalised descriptors, so $0 \le d \le 2$. Each query forms $M$ triplets with its positive and its $M$
+# hardest negatives. The baseline is the triplet margin loss
 #
 # $$L_T = \sum \max(0,\; d_p - d_n + m). \tag{3}$$
 #
@@ -94,29 +89,24 @@ print(f"profile {PROFILE}")
 # $$L_{CE} = -\sum \big[\,0 \cdot \log \hat d_p + 1 \cdot \log \hat d_n\big] = -\sum \log \hat d_n
 #         = \sum \log\big(1 + e^{\,d_p - d_n}\big) = \sum \operatorname{softplus}(d_p - d_n). \tag{7–8}$$
 #
-# It has no margin: the loss and its gradient, the logistic function $\operatorname{sig}(d_p - d_n) = 1 / (1 + e^{d_n - d_p})$,
-# shrink smoothly as $d_n$ outgrows $d_p$ but never vanish. (The grouping of the equation numbers 5–8
-# follows `vpr_nb.losses`; the formulas are what matters.)
+# It has no margin. The loss and its gradient, the logistic function
+# $\operatorname{sig}(d_p - d_n) = 1 / (1 + e^{d_n - d_p})$, shrink smoothly as $d_n$ outgrows $d_p$ but
+# never vanish.
 #
 # **DW-T-Loss** weights the cross-entropy triplet loss with Eq. (4):
 #
 # $$L_{DW} = -\sum w \cdot \log \hat d_n . \tag{9}$$
 #
-# **The paper's implied recipe.** The paper's hyper-parameters are those of `Nanne/pytorch-NetVlad`
-# (VGG16 conv5 + NetVLAD-64, SGD lr $10^{-4}$, momentum 0.9, weight decay $10^{-3}$, StepLR(5, 0.5),
-# 30 epochs, $\sigma = 800$ m, $\varepsilon = 0.1$); its batch is "4 triplets, totaling 12 images" (in
-# pytorch-NetVlad each of the 4 is a query with its positive and 10 hard negatives, 12 images). In that code
-# the "margin 0.1" is applied as $\sqrt{0.1} \approx 0.316$ to plain Euclidean distances
-# (`TripletMarginLoss(margin=0.1**0.5)`) and the loss is **averaged** over the batch's negatives. Nothing
-# rescales the learning rate per loss, so at SGD lr $10^{-4}$ W-T-Loss and DW-T-Loss take steps about as many
-# times larger as their gradients are (measured below). This notebook keeps the paper's $m = 0.1$ and sums
-# over the $M = 5$ negatives of a query; everything else is the course recipe (next sections).
+# **The paper's settings** are those of `Nanne/pytorch-NetVlad`: SGD at lr $10^{-4}$, $\sigma = 800$ m,
+# $\varepsilon = 0.1$, and no per-loss rescaling of the learning rate. This notebook keeps $m = 0.1$, sums over
+# the $M = 5$ negatives of a query and otherwise follows the course recipe. More on the paper's code:
+# `docs/notes/03_distance_ranking_weighted_loss.md`.
 
 # %% [markdown]
 # ## Eq. (4): what σ = 800 m means for positives within 10–25 m
 #
-# The numbers come from `vpr_nb.widgets.distance_weight_curve`, a pure (tested) function; the sliders
-# below are a thin view of it (move them in JupyterLab; the static page shows the default).
+# The numbers come from the tested function `vpr_nb.widgets.distance_weight_curve`. The sliders below are a
+# thin view of it (JupyterLab only; the static page shows the default).
 
 # %%
 curve = distance_weight_curve(SIGMA, EPS, max_distance=1000.0, marks=(0.0, 5.0, 10.0, 25.0))
@@ -153,16 +143,14 @@ explorer.f(**explorer.kwargs)
 
 
 # %% [markdown]
-# **Figure 2.** The weight explorer: two sliders (σ on a log scale, ε) redraw Eq. (4) in JupyterLab;
-# the figure and line printed under them are its default state (σ = 800 m, ε = 0.1), stored for readers
-# without a kernel.
+# **Figure 2.** The weight explorer: sliders for σ and ε redraw Eq. (4) in JupyterLab. Stored here is its
+# default state (σ = 800 m, ε = 0.1).
 
 # %% [markdown]
-# With σ = 800 m the positives all sit on the flat start of the curve: the output above shows $w$ going
-# from 10 at 0 m to 8.8 at 10 m. So W-T-Loss is, to first order, **T-Loss multiplied by ≈ 9**, plus a
-# mild preference for closer positives. Under SGD a constant factor on the loss is a factor on the
-# learning rate, so a W-T-Loss run at the T-Loss learning rate is really a run with a ~9× larger step.
-# (Try σ = 25 m with the sliders: then the weight really ranks the positives by distance.)
+# With σ = 800 m all positives sit on the flat start of the curve: $w$ goes from 10 at 0 m to 8.8 at 10 m.
+# So W-T-Loss is, to first order, **T-Loss multiplied by ≈ 9**, plus a mild preference for closer positives.
+# Under SGD a constant factor on the loss is a factor on the learning rate: W-T-Loss at T-Loss's learning
+# rate takes ~9× larger steps. (With σ = 25 m on the sliders, the weight really ranks the positives.)
 #
 # ## Build it: Eqs. (5)–(9) in plain torch
 
@@ -204,9 +192,9 @@ plots.plot_distance_weight(geo, weight_by_hand(geo, SIGMA, EPS), SIGMA, EPS)
 plt.show()
 
 # %% [markdown]
-# **Figure 3.** Eq. (4) for this batch's 8 positives. Left: the curve on a log distance axis, zero at σ = 800 m,
-# and T-Loss's weight 1 (dashed). Right: the weights by distance rank, all about 9: here W-T-Loss is T-Loss
-# scaled, not re-ranked.
+# **Figure 3.** Eq. (4) for this batch's 8 positives: the curve on a log distance axis, zero at σ = 800 m,
+# with T-Loss's weight 1 dashed (left), and the weights by distance rank, all about 9 (right). W-T-Loss is
+# T-Loss scaled, not re-ranked.
 
 # %% [markdown]
 # ## Use `vpr_nb`: the same numbers
@@ -229,33 +217,18 @@ print("CE-Loss on descriptors scaled by 1e4 (naive exp would overflow):", f"{ce_
 # %% [markdown]
 # ## The course recipe, the pretrained backbone and the references
 #
-# Every fine-tune of this notebook follows the **course recipe** (`vpr_nb.recipe.RECIPE`, the protocol
-# notebooks 03–07 share): the course backbone with its last block trainable (the analogue of VGG16's
-# conv5), every aggregator reading its output, after its final ReLU (notebook 04 measured NetVLAD's start
-# both ways), NetVLAD initialised by k-means on the training database, triplet batches
-# of 16 queries with the 5 hardest of 300 negatives (margin 0.1, positives facing within 45°), Adam with
-# weight decay $10^{-3}$ and StepLR(5, 0.5), the starting weights as the "epoch-0" candidate, training
-# until validation Recall@1 has not improved for 4 epochs, and the learning rate of each loss chosen on
-# validation from a small grid. Validation is a second city (seed 1, never trained or tested on), almost all
-# of it held out as validation, 803 queries (`vpr_nb.recipe.VALIDATION_WORLD`): the seed-0 world's own
-# validation split has 133 queries, where one query is 1/133 ≈ 0.0075 of Recall@1, the size of the
-# differences the selection has to see. This notebook deviates in one place only: the grid also holds the paper's
-# learning rate, $10^{-4}$ (under Adam a step is about lr per weight whatever the gradient's size, so the
-# paper's SGD rate is a plausible Adam rate as it stands, and it widens the grid downwards).
+# Every fine-tune follows the **course recipe** (`vpr_nb.recipe.RECIPE`, shared by notebooks 03–07). The
+# course backbone's last block trains (the analogue of conv5), and each aggregator reads its output after
+# the final ReLU. NetVLAD starts from k-means on the training database. A batch holds 16 queries, each with
+# the 5 hardest of 300 negatives (margin 0.1, positives facing within 45°). Adam, weight decay $10^{-3}$ and
+# StepLR(5, 0.5) train until validation Recall@1 has not improved for 4 epochs; the starting weights are the
+# "epoch-0" candidate. Each loss's learning rate is chosen on validation from a small grid, here widened by
+# the paper's $10^{-4}$. Validation is a second city (seed 1, 803 queries), never trained or tested on. For
+# one training seed every row starts from the **same initial weights** and the same mining randomness; only the loss (with its learning rate) or the pooling changes.
 #
-# The paper's own batch is **4 triplets, totaling 12 images** (Nanne/pytorch-NetVlad's defaults, SGD
-# lr $10^{-4}$); the recipe's 16 queries × 5 negatives gives every loss more triplets per step, the same
-# for all. For one training seed $s$ every row starts from the **same initial weights** and draws the same
-# mining randomness; only the loss (and the learning rate it chose) or the pooling changes.
-#
-# The course backbone is a `SmallCNN` pretrained with the Multi-Similarity loss (and a local contrastive term)
-# on worlds with seeds $\ge 100$ (never this notebook's world, seed 0). Its output is an 8×12 map of 128-d
-# local features.
-#
-# **NetVLAD's K.** The paper's NetVLAD-64 sees a 30×40 conv5 map of 512-d features (1200 local
-# features, about 19 per cluster) and outputs $64 \cdot 512 = 32768$ dimensions. Here a map has only
-# $8 \cdot 12 = 96$ local features; K = 16 (the recipe's) leaves about 6 per cluster per image and gives a
-# 2048-d descriptor (16 × the 128 channels, the paper's 64 × 512 scaled down).
+# The course backbone is a `SmallCNN` pretrained with the Multi-Similarity loss on other worlds (seeds
+# $\ge 100$). It outputs an 8×12 map of 128-d local features. NetVLAD-16 turns it into a
+# $16 \cdot 128 = 2048$-d descriptor.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -306,17 +279,14 @@ for name, rec in REFERENCES.items():
     print(f"{name:40s}" + "".join(f"{rec[f'R@{k}']:8.3f}" for k in NS) + f"{cosines[name]:36.3f}")
 
 # %% [markdown]
-# These are the starting points of the fine-tunes below ("frozen + netvlad" is NetVLAD-16 initialised by
-# k-means with seed 0, reading the backbone's output; each training seed re-runs the k-means, and its own
-# start is what its fine-tune is compared with). A local feature that the final ReLU switched off entirely
-# would get NetVLAD's uniform assignment $1/K$ and add the same offset $-c_k / K$ to every image's residuals
-# (notebook 04's graded exercise); on the course backbone none is (the fraction printed above).
+# These are the fine-tunes' starting points; each training seed re-runs NetVLAD's k-means and is compared
+# with its own start. No local feature is switched off entirely by the
+# final ReLU (the fraction printed above).
 #
 # ### How large is each loss's gradient? Measured on real triplets
 #
-# Mine one batch of real triplets (64 training queries, NetVLAD mining with the starting model) and
-# compare each loss's gradient over the trainable parameters with T-Loss's: the direction (cosine
-# similarity) and the size (norm ratio $\rho$).
+# Mine one batch of real triplets (64 training queries) with the starting NetVLAD model. Compare each loss's
+# gradient with T-Loss's: its direction (cosine similarity) and its size (norm ratio $\rho$).
 
 # %%
 # NBVAL_TOLERANCE=0.02   k-means and trained numbers: other CPUs round a little differently
@@ -367,23 +337,17 @@ print(f"{b} valid triplet queries; their positives lie {np.median(geo_qp):.1f} m
       f"mean weight w̄ = {w_bar:.2f}")
 
 # %% [markdown]
-# W-T-Loss points exactly as T-Loss does and is about $\bar w$ times longer: over the positives the
-# weight is nearly constant. CE-Loss weights each triplet by $\operatorname{sig}(d_p - d_n)$ instead of
-# 0 or 1. The starting model's triplets all have $d_n - d_p$ within a few tenths of 0 (printed under the
-# next plot), so every triplet gets a weight near ½, including the satisfied ones that T-Loss ignores:
-# CE-Loss's gradient is shorter than T-Loss's and turns away from it (the cosine column), and DW-T-Loss's
-# is about $\bar w$ times CE-Loss's. The three aggregators give much the same ratios. Under SGD these
-# ratios are ratios of step sizes at one learning rate; under Adam they cancel (the experiment below
-# measures both).
+# W-T-Loss points exactly as T-Loss does and is about $\bar w$ times longer. CE-Loss weights each triplet by
+# $\operatorname{sig}(d_p - d_n)$ instead of 0 or 1. At the start every $d_n - d_p$ lies near 0, so every
+# triplet gets a weight near ½, even the satisfied ones that T-Loss ignores. So CE-Loss's gradient is
+# shorter than T-Loss's and turns away from it. DW-T-Loss's is about $\bar w$ times CE-Loss's. The three
+# aggregators agree. Under SGD these ratios are ratios of step sizes; under Adam they cancel.
 #
 # ### The softmax of Eqs. (5)–(6) has no temperature
 #
-# For L2-normalised descriptors $d_p, d_n \in [0, 2]$, so the only input of the softmax,
-# $d_n - d_p$, lies in $[-2, 2]$, and $\hat d_n = \operatorname{sig}(d_n - d_p)$ never leaves
-# $[\operatorname{sig}(-2), \operatorname{sig}(2)] = [0.12, 0.88]$. Below: $\hat d_n$ and the size of the
-# loss's derivative over that range, for CE-Loss as published, for a softmax with a temperature
-# $\tau = 0.1$ (what InfoNCE-style losses use), and for the hinge of T-Loss; the histogram is the
-# $d_n - d_p$ of the real triplets just mined with the initial NetVLAD model.
+# Since $d_p, d_n \in [0, 2]$, the softmax's input $d_n - d_p$ lies in $[-2, 2]$. So
+# $\hat d_n = \operatorname{sig}(d_n - d_p)$ stays within $[0.12, 0.88]$. The plot compares CE-Loss with a
+# temperature $\tau = 0.1$ version (as in InfoNCE) and with T-Loss's hinge.
 
 # %%
 # NBVAL_TOLERANCE=0.02   k-means and trained numbers: other CPUs round a little differently
@@ -415,37 +379,29 @@ print(f"real triplets (initial NetVLAD model): d_n − d_p from {gap.min():.3f} 
       f"and {np.mean(gap < MARGIN):.3f} of them violate the margin {MARGIN}")
 
 # %% [markdown]
-# **Figure 4.** Left: $\hat d_n$ of Eqs. (5)–(6) over the whole reachable range of $d_n - d_p$, without and with a
-# temperature τ = 0.1. Right: the size of each loss's derivative per triplet over the same range (CE-Loss,
-# CE with τ = 0.1, T-Loss at both margins), over the histogram of $d_n - d_p$ of the real triplets mined with
-# the starting NetVLAD model (grey).
+# **Figure 4.** Left: $\hat d_n$ over the reachable range of $d_n - d_p$, without and with τ = 0.1. Right:
+# each loss's derivative per triplet (CE-Loss, CE with τ = 0.1, T-Loss at both margins) over the
+# histogram of $d_n - d_p$ of the real triplets (grey).
 
 # %% [markdown]
-# Without a temperature the CE loss is almost **linear** in $d_n - d_p$ over the range descriptors can
-# reach: every triplet, hard or already easy, pushes with about the same strength (about ½, from the
-# outputs above), and the loss can never fall below $\log(1 + e^{-2}) \approx 0.13$ per triplet.
-# T-Loss's hinge instead pushes with full strength on violating triplets and not at all on the others.
+# Without a temperature the CE loss is almost **linear** over the reachable range. Every triplet, hard or
+# easy, pushes with about the same strength (about ½ here), and the loss never falls below
+# $\log(1 + e^{-2}) \approx 0.13$ per triplet. T-Loss's hinge pushes only on violating triplets.
 #
 # ### SGD or Adam: when is a factor on the gradient a factor on the step?
 #
-# Under **SGD** the step is $\eta \nabla L$: a loss whose gradient is $\rho$ times T-Loss's takes steps $\rho$
-# times larger at the same learning rate, so the paper's W-T-Loss at lr $10^{-4}$ trains like T-Loss at
-# about $9 \times 10^{-4}$. **Adam** divides each weight's gradient by a running estimate of its own size,
-# so a constant factor on the loss cancels: under Adam W-T-Loss at σ = 800 m should train like T-Loss, and
-# DW-T-Loss like CE-Loss, except for the mild preference for closer positives. The experiment measures both:
-# the course recipe (Adam, the learning rate of each loss chosen on validation) for the two tables, and
-# T-Loss against W-T-Loss under SGD at the paper's learning rate.
+# Under **SGD** the step is $\eta \nabla L$: a gradient $\rho$ times T-Loss's gives $\rho$ times larger steps.
+# So the paper's W-T-Loss at lr $10^{-4}$ trains like T-Loss at about $9 \times 10^{-4}$. **Adam** divides
+# each weight's gradient by a running estimate of its size, so a constant factor cancels. Under Adam,
+# W-T-Loss should train like T-Loss, and DW-T-Loss like CE-Loss.
 #
 # ## Experiment: Table II and Table III analogs
 #
-# Eight methods under the recipe, each with its learning rate chosen on validation from the grid: Table II,
-# NetVLAD-16 with T-Loss, W-T-Loss, CE-Loss and DW-T-Loss; Table III, max and mean pooling with T-Loss and
-# with DW-T-Loss (the paper's "-W" rows use DW-T-Loss). Each lr is chosen on the mean validation R@1 over
-# the first 3 seeds (the recipe's `search_seeds`; 803 validation queries), seeds 3 and 4 train at the chosen
-# lr only, and the runs at the chosen lr are the table's 5 paired seeds. Two more
-# rows deviate from the recipe on purpose: T-Loss and W-T-Loss under **SGD** (momentum 0.9) at the paper's
-# lr $10^{-4}$, with no search. The CI profile trains every row for one epoch on 64 training queries at the
-# recipe's default lr (a smoke test of the code); the tables show the committed reproduce profile.
+# Table II: NetVLAD-16 with T-Loss, W-T-Loss, CE-Loss and DW-T-Loss. Table III: max and mean pooling with
+# T-Loss and with DW-T-Loss (the paper's "-W" rows). These eight rows use the recipe. Each learning rate is
+# the best by mean validation R@1 over seeds 0–2; seeds 3 and 4 train at it only. Two more rows, T-Loss and
+# W-T-Loss, use **SGD** (momentum 0.9) at the paper's lr $10^{-4}$. The CI profile is a one-epoch smoke
+# test; the tables show the committed reproduce profile.
 
 # %%
 SGD = dataclasses.replace(RECIPE, optimizer="sgd")          # the SGD rows: the paper's optimiser and lr
@@ -595,19 +551,17 @@ fig.tight_layout(rect=(0, 0, 1, 0.93))   # the legend above both panels, clear o
 plt.show()
 
 # %% [markdown]
-# **Figure 5.** Test R@1 of the Table II analog (left, NetVLAD-16, with the two SGD rows) and the Table III
-# analog (right): mean ± standard deviation over the reproduce profile's seeds (blue; dots are single seeds),
-# the mean R@1 of each row's own starting weights (red bar) and the paper's Pittsburgh30k numbers (orange;
-# none for the SGD rows).
+# **Figure 5.** Test R@1 of the Table II analog (left, with the two SGD rows) and the Table III analog
+# (right). Blue: mean ± std over seeds (dots: single seeds). Red bar: each row's own start. Orange: the
+# paper's Pittsburgh30k numbers.
 
 # %% [markdown]
 # ### Verdicts: paired differences over seeds, behind a working control
 #
-# Each line is the per-seed difference of test R@1 between two rows trained from the same initial weights
-# with the same mining randomness, its mean and standard error over the committed seeds. A row "is better"
-# only when the mean difference exceeds two standard errors, and a comparison is made at all only when its
-# baseline beats **its own starting weights** by more than 2 SE (`vpr_nb.results.gated_verdict`): otherwise
-# the line says "inconclusive" with the control's numbers. First the controls, then the comparisons.
+# Each line gives the mean per-seed difference of test R@1 between two paired rows and its standard error. A
+# row "is better" only when the difference exceeds 2 SE. A comparison counts only when its baseline beats
+# **its own starting weights** by more than 2 SE (`vpr_nb.results.gated_verdict`). First the controls, then
+# the comparisons.
 
 # %%
 def r1(name):
@@ -645,12 +599,10 @@ record("03_distance_ranking_weighted_loss", {
 # %% [markdown]
 # ## Graded exercise: a temperature for the cross-entropy form
 #
-# Eqs. (5)–(8) turn the two distances into probabilities with a softmax at temperature 1. Write
-# `my_ce_loss_tau(d_p, d_n, tau)` for tensors of query-positive and query-negative distances (same shape)
-# and a temperature $\tau > 0$: the sum of $-\log \hat d_n$ with
-# $\hat d_n = \frac{e^{d_n/\tau}}{e^{d_p/\tau} + e^{d_n/\tau}}$, as a 0-d tensor, in plain torch (no `vpr_nb`),
-# finite and accurate for large $|d_p - d_n| / \tau$ (the hidden tests use $\tau = 0.01$ and distances of 1000).
-# Grading runs only the notebook's import cells and your solution cell.
+# Write `my_ce_loss_tau(d_p, d_n, tau)` in plain torch, for two distance tensors of the same shape and
+# $\tau > 0$. Return the sum of $-\log \hat d_n$ with $\hat d_n = \frac{e^{d_n/\tau}}{e^{d_p/\tau} +
+# e^{d_n/\tau}}$ as a 0-d tensor. Keep it finite for large $|d_p - d_n| / \tau$ (the hidden tests use
+# $\tau = 0.01$ and distances of 1000). Grading runs only the import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-03-ce-tau", "locked": false, "schema_version": 3, "solution": true}
 def my_ce_loss_tau(d_p, d_n, tau=1.0):
@@ -684,17 +636,14 @@ check("my_ce_loss_tau", cases)
 # %% [markdown]
 # ## Graded exercise: predict, then measure the equal effective step
 #
-# The gradient table above compares each loss's gradient with T-Loss's over the network's parameters. The
-# same question can be asked of the losses themselves, per triplet: with the gap $g = d_n - d_p$, T-Loss's
-# derivative $|\partial L_T / \partial g|$ is 1 for a violated triplet ($g < m$) and 0 otherwise, DW-T-Loss's is
-# $w \cdot \operatorname{sig}(-g)$ with the weight $w$ of Eq. (4) (from Eqs. (8)–(9)). Over a batch, call
-# $\rho$ the ratio of the Euclidean norms of these two vectors of derivatives: under SGD, DW-T-Loss at learning rate
-# $\eta / \rho$ then takes steps of the same size as T-Loss at $\eta$.
+# Per triplet, with the gap $g = d_n - d_p$, T-Loss's derivative $|\partial L_T / \partial g|$ is 1 if
+# $g < m$ and 0 otherwise. DW-T-Loss's is $w \cdot \operatorname{sig}(-g)$, with $w$ from Eq. (4). Over a
+# batch, let $\rho$ be the norm of DW-T-Loss's derivatives over that of T-Loss's. Under SGD, DW-T-Loss at
+# lr $\eta / \rho$ then steps as far as T-Loss at $\eta$.
 #
-# **Predict first:** with positives within 10 m, is the equal-step learning rate of DW-T-Loss at
-# $\sigma = 25$ m (the evaluation radius) larger than, smaller than, or the same as at the paper's
-# $\sigma = 800$ m? Replace the `raise` below by `SIGMA_25_STEP = "..."` with one of `"larger"`, `"smaller"`,
-# `"the same"`.
+# **Predict first:** with positives within 10 m, is the equal-step lr of DW-T-Loss at $\sigma = 25$ m
+# larger than, smaller than, or the same as at $\sigma = 800$ m? Replace the `raise` below by
+# `SIGMA_25_STEP = "..."` with `"larger"`, `"smaller"` or `"the same"`.
 
 # %% tags=["grade-deps:ex-03-step-predict", "grade-deps:ex-03-equal-step"]
 import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
@@ -714,11 +663,9 @@ check("SIGMA_25_STEP", [Case("the equal-step learning rate of DW-T-Loss at sigma
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Then measure.** Write `equal_step_lr(d_p, d_n, geo, lr, margin=0.1, sigma=800.0, eps=0.1)` for numpy
-# arrays `d_p` [B] (query-positive distances), `d_n` [B, M] (query-negative distances) and `geo` [B] (the
-# query-positive distances in metres): the learning rate $\eta / \rho$ of DW-T-Loss that gives the same step
-# as T-Loss at `lr`, as a Python float, in numpy (no `vpr_nb`). Then try it on the notebook's real triplets
-# (`GAPS` holds their $d_n - d_p$) or on your own numbers, at both values of $\sigma$.
+# **Then measure.** Write `equal_step_lr(d_p, d_n, geo, lr, margin=0.1, sigma=800.0, eps=0.1)` in numpy.
+# Inputs: `d_p` [B] and `d_n` [B, M] (distances), `geo` [B] (query-positive metres). Return $\eta / \rho$
+# for `lr` as a Python float. Try both values of $\sigma$ (`GAPS` holds the real triplets' $d_n - d_p$).
 
 # %% nbgrader={"grade": false, "grade_id": "ex-03-equal-step", "locked": false, "schema_version": 3, "solution": true}
 def equal_step_lr(d_p, d_n, geo, lr, margin=0.1, sigma=800.0, eps=0.1):
@@ -763,106 +710,72 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 # %% [markdown]
 # ## Exercises
 #
-# 1. **σ that ranks.** Add a new cell right after the imports cell (which is locked in the student version)
-#    that sets `SIGMA = 25.0` (the evaluation radius), then rerun the cells below it: the gradient
-#    measurement and one seed of the tables. Does the weight now do more than rescale the loss?
-#    <details><summary>Hint</summary>First look at the numbers: <code>distance_weight_curve(25.0, EPS,
-#    marks=(0.0, 10.0)).relative_spread</code> says how much the weight changes over the training radius
-#    (compare with σ = 800 m). Then read the cosine column of the gradient table: a weight that ranks the
-#    positives turns the gradient's direction, not only its length.</details>
-# 2. **A temperature for Eq. (5), trained.** Retrain CE-Loss with the graded exercise's temperature (τ = 0.1).
-#    Does it now behave like T-Loss? Why would it (look at the softmax plot)?
-#    <details><summary>Hint</summary>Subclass <code>vpr_nb.losses.TripletFamilyLoss</code> with a
-#    <code>__call__(q, p, n, geo_qp=None)</code> that computes the distances as <code>ce_loss_by_hand</code>
-#    does and returns <code>my_ce_loss_tau(d_p, d_n, 0.1)</code>, and train it as the table's rows are:
-#    <code>search_methods([Method("CE, τ = 0.1", "netvlad", MyLoss(), paper_lr=PAPER_LR)], tr, va, RECIPE,
-#    seeds=[0, 1, 2])</code>. Under Adam its larger gradient (about 1/τ times CE-Loss's) does not need a
-#    smaller learning rate.</details>
-# 3. **Negative weights.** With σ = 8 m, a positive at 9 m gets $w < 0$. What does a negative weight do
-#    to a violated triplet? Should Eq. (4) be clipped at 0?
-#    <details><summary>Hint</summary>Write the W-T-Loss term $w \cdot \max(0, d_p - d_n + m)$ with $w < 0$ and
-#    ask which way gradient descent moves $d_n$ and $d_p$. Then ask whether an image 9 m away is a wrong
-#    positive or just a far one.</details>
-# 4. **The paper's margin.** Train T-Loss with `margin = 0.1 ** 0.5` (pytorch-NetVlad's effective margin).
+# 1. **σ that ranks.** Add a cell after the (locked) imports cell that sets `SIGMA = 25.0`, and rerun the
+#    gradient measurement and one seed of the tables. Does the weight now do more than rescale the loss?
+#    <details><summary>Hint</summary>Compare <code>distance_weight_curve(25.0, EPS, marks=(0.0,
+#    10.0)).relative_spread</code> with σ = 800 m. A weight that ranks the positives changes the cosine
+#    column, not only the ratio.</details>
+# 2. **A temperature, trained.** Retrain CE-Loss with τ = 0.1. Does it now behave like T-Loss, and why
+#    (see the softmax plot)?
+#    <details><summary>Hint</summary>Subclass <code>vpr_nb.losses.TripletFamilyLoss</code>; its
+#    <code>__call__(q, p, n, geo_qp=None)</code> returns <code>my_ce_loss_tau(d_p, d_n, 0.1)</code>. Train it
+#    as a <code>Method</code> with <code>search_methods</code>, seeds 0–2. Under Adam its larger gradient needs no smaller learning rate.</details>
+# 3. **Negative weights.** With σ = 8 m, a positive at 9 m gets $w < 0$. What does that do to a violated
+#    triplet? Should Eq. (4) be clipped at 0?
+#    <details><summary>Hint</summary>Which way does gradient descent move $d_n$ and $d_p$ when $w < 0$? Is
+#    an image 9 m away a wrong positive or just a far one?</details>
+# 4. **The paper's margin.** Train T-Loss with `margin = 0.1 ** 0.5`, pytorch-NetVlad's effective margin.
 #    Does T-Loss move, and does the DW-T − T gap?
-#    <details><summary>Hint</summary>A row is a <code>Method</code>: train
-#    <code>Method("T-Loss, m = √0.1", "netvlad", TripletLoss(margin=0.1 ** 0.5), paper_lr=PAPER_LR)</code> with
-#    <code>search_methods</code> on the table's seeds and compare the paired seeds with
-#    <code>results.gated_verdict</code>.</details>
-# 5. **Seeds.** From the committed spread, how many seeds would you need to resolve a 0.01 difference in
-#    R@1 at two standard errors? Compare with the paper's single runs.
-#    <details><summary>Hint</summary>The standard error of a mean paired difference over $n$ seeds is
-#    $s_d / \sqrt n$, with $s_d$ the standard deviation of the per-seed differences (use
-#    <code>res["rows"][name]["R@1"]</code> for two rows). Solve $2 s_d / \sqrt n \le 0.01$ for $n$.</details>
-# 6. **SGD at the equal step.** Under SGD, train W-T-Loss at the paper's lr divided by its measured gradient
-#    ratio (the `RATIOS` table). Is it then within 2 SE of T-Loss under SGD?
-#    <details><summary>Hint</summary>Use the SGD recipe of the table's SGD rows,
-#    <code>search_methods([(method, SGD)], tr, va, RECIPE, SEEDS, lr=PAPER_LR / RATIOS["netvlad"]["W-T-Loss"])</code>,
-#    and compare with <code>res["rows"]["T-Loss, SGD"]["R@1"]</code> seed by seed.</details>
+#    <details><summary>Hint</summary>Use <code>TripletLoss(margin=0.1 ** 0.5)</code> in a
+#    <code>Method</code> and compare paired seeds with <code>results.gated_verdict</code>.</details>
+# 5. **Seeds.** How many seeds would resolve a 0.01 difference in R@1 at two standard errors? Compare with the paper's single runs.
+#    <details><summary>Hint</summary>Solve $2 s_d / \sqrt n \le 0.01$, with $s_d$ the standard deviation of
+#    the per-seed differences of two rows.</details>
+# 6. **SGD at the equal step.** Under SGD, train W-T-Loss at the paper's lr divided by its `RATIOS` entry.
+#    Is it then within 2 SE of T-Loss under SGD?
+#    <details><summary>Hint</summary>Pass <code>lr=PAPER_LR / RATIOS["netvlad"]["W-T-Loss"]</code> and
+#    the <code>SGD</code> recipe to <code>search_methods</code>.</details>
 #
 # ## Takeaways
 #
-# Every point rests on an output above: the Eq. (4) marks, the gradient table, the softmax plot's
-# printout, the two tables (reproduce profile, 5 paired seeds), the controls and the verdicts.
-#
-# * **Eq. (4) at $\sigma = 800$ m is a learning-rate factor.** Over the 10 m training radius the weight only
-#   falls from 10 to 8.8; on real triplets W-T-Loss's gradient is T-Loss's times about 9.4 with cosine 1.000.
-# * **Under SGD at the paper's learning rate the factor is what trains.** At lr $10^{-4}$ T-Loss moves a
-#   little from its starting weights (its control, +0.030 ± 0.005), while W-T-Loss, the same direction with a
-#   ~9× step, moves twice as far (+0.062 ± 0.008): W-T − T = +0.032 ± 0.009, beyond 2 SE. At the paper's
-#   rate the distance weight helps, as a larger step would.
-# * **Under Adam, with each loss's learning rate chosen on validation, the plain triplet loss leads**
-#   (Table II analog: T 0.858, W-T 0.853, CE 0.834, DW-T 0.839 mean R@1; paper 0.812, 0.811, 0.797,
-#   0.826). The T-Loss baseline works (it beats its own start by +0.111 ± 0.007), so the comparisons count:
-#   W-T − T is within 2 SE (the factor is an lr factor, and Adam undoes it), while CE-Loss and DW-T-Loss end
-#   *below* T-Loss beyond 2 SE (−0.025 ± 0.009 and −0.020 ± 0.008). DW-T vs CE is within 2 SE: the distance
-#   weight adds nothing measurable over the cross-entropy form, whose gradient points elsewhere (cosine about
-#   0.8 with T-Loss's, the gradient table). The paper has DW-T-Loss first; here it is not.
-# * **Table III analog: every pooling row trains, and -W does not help.** All four rows beat their frozen
-#   start (controls: +3 to +10 points); Max-W vs Max is within 2 SE (the paper: Max-W 3 points above Max),
-#   Mean-W is below Mean beyond 2 SE (−0.037 ± 0.010), and Mean beats Max (+0.015 ± 0.005), where the paper
-#   has max 4 points ahead. NetVLAD beats max pooling by far (T-Loss − Max = +0.086 ± 0.008), as in the paper.
-# * **Seeds matter as much as the paper's gaps.** The seed-to-seed standard deviations (0.003 to 0.020) are
-#   the size of the 1–3 point differences of the paper's single runs, and the standard errors of the paired
-#   differences are about 0.005 to 0.011: without paired seeds, standard errors and a working control no
-#   ordering of these losses could be claimed, here or from one run each. Validation matters too: the
-#   selection here reads 803 queries of a second world, where one query is 1/803 of Recall@1.
+# * **Eq. (4) at $\sigma = 800$ m is a learning-rate factor.** Over the 10 m training radius the weight falls
+#   only from 10 to 8.8. W-T-Loss's gradient is T-Loss's times about 9.4, with cosine 1.000.
+# * **Under SGD at the paper's learning rate, the factor is what trains.** T-Loss moves a little from its
+#   start (+0.030 ± 0.005), W-T-Loss twice as far (+0.062 ± 0.008): W-T − T = +0.032 ± 0.009, beyond 2 SE.
+# * **Under Adam the plain triplet loss leads.** Mean R@1: T 0.858, W-T 0.853, CE 0.834, DW-T 0.839 (paper
+#   0.812, 0.811, 0.797, 0.826). T-Loss beats its start by +0.111 ± 0.007, so comparisons count. W-T − T is
+#   within 2 SE: Adam undoes the factor. CE-Loss and DW-T-Loss end *below* T-Loss (−0.025 ± 0.009 and
+#   −0.020 ± 0.008). DW-T vs CE is within 2 SE: the weight adds nothing measurable. The paper has DW-T-Loss first; here it is not.
+# * **Table III analog: -W does not help.** All four rows beat their start (+3 to +10 points). Max-W vs Max
+#   is within 2 SE; Mean-W is below Mean (−0.037 ± 0.010). Mean beats Max (+0.015 ± 0.005), unlike the
+#   paper. NetVLAD beats max pooling by far (T-Loss − Max = +0.086 ± 0.008), as in the paper.
+# * **Seeds matter.** Seed-to-seed standard deviations (0.003 to 0.020) match the paper's 1–3 point gaps
+#   between single runs. Only paired seeds, standard errors and a working control can order these losses.
 
 # %% [markdown]
 # ## Self-check
 #
 # 1. Why is W-T-Loss at σ = 800 m, to first order, T-Loss with a larger learning rate?
-#    <details><summary>Answer</summary>Over the positives (all within 10 m) Eq. (4) hardly changes, from 10 at
-#    0 m to 8.8 at 10 m, so the loss is T-Loss times a nearly constant factor; under SGD a constant factor on
-#    the loss is the same factor on the learning rate. The gradient table shows it: cosine 1 with T-Loss, about
-#    9 times as long.</details>
+#    <details><summary>Answer</summary>Over positives within 10 m, Eq. (4) only falls from 10 to 8.8. The
+#    loss is T-Loss times a nearly constant factor, which under SGD multiplies the learning rate.</details>
 # 2. On L2-normalised descriptors, within which values does $\hat d_n$ of Eqs. (5)–(6) stay, and what does
 #    that do to CE-Loss?
-#    <details><summary>Answer</summary>$d_n - d_p \in [-2, 2]$, so $\hat d_n \in [0.12, 0.88]$: the loss is
-#    nearly linear in $d_n - d_p$ and pushes every triplet with about the same strength, violated or not, and it
-#    can never fall below $\log(1 + e^{-2}) \approx 0.13$ per triplet.</details>
+#    <details><summary>Answer</summary>$\hat d_n \in [0.12, 0.88]$, since $d_n - d_p \in [-2, 2]$. The loss
+#    is nearly linear and pushes every triplet about equally, violated or not.</details>
 # 3. Why would one training run per loss not be enough to rank these losses here?
-#    <details><summary>Answer</summary>The seed-to-seed standard deviations of R@1 of the four losses in
-#    the Table II analog, 0.009 to 0.018, are the size of the differences between their means (T-Loss 0.858,
-#    W-T-Loss 0.853, CE-Loss 0.834, DW-T-Loss 0.839) and of the 1–3 point gaps between the paper's losses:
-#    one run per loss could put them in another order. Only paired seeds and the standard errors of their
-#    differences (the verdicts: DW-T − T = −0.020 ± 0.008 is beyond 2 SE, W-T − T = −0.005 ± 0.010 is not)
-#    can say whether one loss is better.</details>
+#    <details><summary>Answer</summary>The seed-to-seed standard deviations of R@1 (0.009 to 0.018) are as
+#    large as the gaps between the losses' means. One run each could give another order.</details>
 
 # %% [markdown]
 # ## References
 #
-# * Y. Xiong, S. Xu, G. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place
-#   Recognition* (the DW-T-Loss paper; its Tables II and III are quoted above).
+# * Y. Xiong, S. Xu, G. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place Recognition*.
 # * R. Arandjelović, P. Gronát, A. Torii, T. Pajdla, J. Sivic, *NetVLAD: CNN architecture for weakly
-#   supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247);
-#   code: [Relja/netvlad](https://github.com/Relja/netvlad) (MATLAB) and
-#   [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad) (the PyTorch port whose defaults
-#   the paper uses: margin $\sqrt{0.1}$, SGD $10^{-4}$, StepLR(5, 0.5), 30 epochs).
-# * A. Torii, J. Sivic, T. Pajdla, M. Okutomi, *Visual Place Recognition with Repetitive Structures*,
-#   CVPR 2013 (the Pittsburgh dataset), [DOI 10.1109/CVPR.2013.119](https://doi.org/10.1109/CVPR.2013.119).
-# * F. Schroff, D. Kalenichenko, J. Philbin, *FaceNet: A Unified Embedding for Face Recognition and
-#   Clustering*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832) (the triplet margin loss).
-# * X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott, *Multi-Similarity Loss with General Pair Weighting
-#   for Deep Metric Learning*, CVPR 2019, [arXiv:1904.06627](https://arxiv.org/abs/1904.06627) (how the
-#   course backbone was pretrained).
+#   supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247); code:
+#   [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad), whose defaults the paper uses.
+# * A. Torii et al., *Visual Place Recognition with Repetitive Structures*, CVPR 2013 (Pittsburgh),
+#   [DOI 10.1109/CVPR.2013.119](https://doi.org/10.1109/CVPR.2013.119).
+# * F. Schroff et al., *FaceNet*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832) (the
+#   triplet margin loss).
+# * X. Wang et al., *Multi-Similarity Loss with General Pair Weighting for Deep Metric Learning*, CVPR 2019,
+#   [arXiv:1904.06627](https://arxiv.org/abs/1904.06627).
