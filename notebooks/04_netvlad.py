@@ -18,21 +18,18 @@
 # %% [markdown]
 # # 04 · From bag of words to NetVLAD
 #
-# **Aim.** Build the NetVLAD aggregation layer (Arandjelović et al., CVPR 2016) one step at a time and
-# fine-tune it on a pretrained backbone, as the paper does with VGG16. You will
+# **Aim.** Build the NetVLAD aggregation layer (Arandjelović et al., CVPR 2016) step by step. Then fine-tune
+# it on a pretrained backbone, as the paper does with VGG16. You will
 #
-# * go from a **bag of visual words** (a histogram of nearest centroids) to **VLAD** (sums of residuals
-#   to the centroids) to **NetVLAD** (soft assignment, learnable), in a few lines of torch;
-# * normalise the way the paper does: each local descriptor, each cluster's residual sum
-#   (*intra-normalisation*), then the whole vector;
-# * initialise the layer with **k-means** (faiss) and choose the softmax sharpness $\alpha$ from the data;
-# * check that the layer derived here equals `vpr_nb.aggregation.NetVLAD` (whose parameter names load
-#   the public `pytorch-NetVlad` checkpoints);
-# * measure whether NetVLAD should read the backbone's features **before or after its last ReLU** (the public
-#   code reads VGG16's conv5_3 before it), and what exactly-zero local features do to it;
-# * fine-tune the **course backbone** (`vpr_nb.pretrain.course_backbone`, pretrained on other synthetic
-#   worlds) with **GeM pooling** (Eq. G below) vs NetVLAD, with the same triplet pipeline and budget, on the
-#   tiny `city` world: one seed live, five seeds in the committed reproduce profile.
+# * go from a **bag of visual words** (counts) to **VLAD** (residual sums) to **NetVLAD** (soft, learnable
+#   assignment) in torch;
+# * normalise as the paper does: each descriptor, each cluster (*intra-normalisation*), the whole vector;
+# * initialise with **k-means** (faiss) and pick the softmax sharpness $\alpha$ from the data;
+# * check your layer against `vpr_nb.aggregation.NetVLAD`, which loads the public `pytorch-NetVlad`
+#   checkpoints;
+# * measure whether NetVLAD should read the backbone **before or after its last ReLU**;
+# * fine-tune the **course backbone** with **GeM pooling** (Eq. G) vs NetVLAD on the tiny `city` world, with
+#   the same pipeline and budget (one seed live, five committed).
 
 # %% tags=["parameters", "grade-deps:ex-04-soft-share"]
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
@@ -82,57 +79,56 @@ print(f"profile {PROFILE}: {RUN['epochs']} epoch(s) per model, seeds {RUN['seeds
 # ## Theory
 #
 # A CNN turns an image into $N = h \cdot w$ local descriptors $x_i \in \mathbb{R}^D$. An aggregation layer
-# turns this *set* into one global vector. Given $K$ centroids $c_1, \dots, c_K$ (a "visual vocabulary",
-# e.g. from k-means on local descriptors of training images):
+# turns this *set* into one global vector. It uses $K$ centroids $c_1, \dots, c_K$, a "visual vocabulary"
+# (e.g. from k-means on training descriptors).
 #
-# **Bag of visual words** counts how many descriptors fall nearest to each centroid:
+# **Bag of visual words** counts the descriptors nearest to each centroid:
 #
 # $$h_k = \sum_{i=1}^{N} a_k(x_i), \qquad a_k(x_i) = \mathbb{1}\big[k = \arg\min_{k'} \lVert x_i - c_{k'} \rVert\big]. \tag{1}$$
 #
-# **VLAD** (Jégou et al., CVPR 2010) keeps *where* in each cell the descriptors lie, by summing their
-# residuals to the centroid: a $K \times D$ matrix
+# **VLAD** (Jégou et al., CVPR 2010) also keeps *where* the descriptors lie in each cell. It sums their
+# residuals to the centroid, giving a $K \times D$ matrix:
 #
 # $$V_k = \sum_{i=1}^{N} a_k(x_i)\,(x_i - c_k) \in \mathbb{R}^D. \tag{2}$$
 #
-# **NetVLAD** replaces the hard assignment by a soft one, differentiable in everything:
+# **NetVLAD** makes the assignment soft, so that everything is differentiable:
 #
 # $$\bar a_k(x_i) = \frac{e^{-\alpha \lVert x_i - c_k \rVert^2}}{\sum_{k'} e^{-\alpha \lVert x_i - c_{k'} \rVert^2}}
 # = \frac{e^{w_k^\top x_i + b_k}}{\sum_{k'} e^{w_{k'}^\top x_i + b_{k'}}},
 # \qquad w_k = 2\alpha c_k,\; b_k = -\alpha \lVert c_k \rVert^2 \tag{3}$$
 #
-# (the $-\alpha\lVert x_i\rVert^2$ term is the same for every $k$ and cancels). NetVLAD then *decouples*
+# The term $-\alpha\lVert x_i\rVert^2$ is the same for every $k$ and cancels. NetVLAD then *decouples*
 # $\{w_k, b_k\}$ from $\{c_k\}$ and learns all three:
 #
 # $$V_k = \sum_{i=1}^{N} \bar a_k(x_i)\,(x_i - c_k) = \Big(\sum_i \bar a_k(x_i)\, x_i\Big) - \Big(\sum_i \bar a_k(x_i)\Big) c_k . \tag{4}$$
 #
-# The soft assignment (3) is a $1\times1$ convolution followed by a softmax over clusters; the right-hand
-# form of (4) is one batched matrix product, no loop over clusters.
+# So (3) is a $1\times1$ convolution plus a softmax, and the right side of (4) is one batched matrix
+# product.
 #
-# **Normalisations.** Each $x_i$ is L2-normalised first; each row $V_k$ is L2-normalised
-# (**intra-normalisation**, Arandjelović & Zisserman, CVPR 2013: one bursty cluster, say a repeated
-# window pattern, cannot dominate); the flattened $K \cdot D$ vector is L2-normalised again:
+# **Normalisations.** Each $x_i$ is L2-normalised first. Then each row $V_k$ is L2-normalised
+# (**intra-normalisation**, Arandjelović & Zisserman, CVPR 2013), so a bursty cluster (a repeated window
+# pattern) cannot dominate. Last, the flattened $K \cdot D$ vector is L2-normalised:
 #
 # $$v = \frac{\mathrm{vec}\big(V_1/\lVert V_1\rVert, \dots, V_K/\lVert V_K\rVert\big)}{\lVert \cdot \rVert}. \tag{5}$$
 #
 # **Initialisation.** The widely used code (vladv1) sets $b_k = 0$ and $w_k = \alpha\, \hat c_k$ with
-# $\hat c_k = c_k/\lVert c_k\rVert$: for unit $x_i$, the logits are $\alpha \cos(x_i, c_k)$. $\alpha$ is
-# chosen so that, on average over sampled descriptors, the best cluster gets **100 times** the weight of
-# the second best, $e^{\alpha \bar\Delta} = 100$:
+# $\hat c_k = c_k/\lVert c_k\rVert$. For unit $x_i$ the logits are then $\alpha \cos(x_i, c_k)$. We choose
+# $\alpha$ so that, on average, the best cluster gets **100 times** the weight of the second best,
+# $e^{\alpha \bar\Delta} = 100$:
 #
 # $$\alpha = \frac{-\ln 0.01}{\bar\Delta}, \qquad \bar\Delta = \operatorname{mean}_i \big(\cos_{(1)}(x_i) - \cos_{(2)}(x_i)\big), \tag{6}$$
 #
-# with $\cos_{(1)}, \cos_{(2)}$ the best and second-best cosine similarity of $x_i$ to the centroids
-# (vladv2 uses Eq. 3 with squared distances instead).
+# where $\cos_{(1)}, \cos_{(2)}$ are the best and second-best cosine similarities of $x_i$ to the centroids.
+# (vladv2 uses Eq. 3 with squared distances instead.)
 #
 # **The baseline: GeM.** Generalised-mean pooling (Radenović, Tolias & Chum, TPAMI 2018, their Eq. 3) keeps
-# one number per channel instead of a residual per cluster: for the $N$ activations $x_{c,i} \ge 0$ of
-# channel $c$,
+# one number per channel, not a residual per cluster. For the $N$ activations $x_{c,i} \ge 0$ of channel $c$:
 #
 # $$f_c = \Big(\frac{1}{N} \sum_{i=1}^{N} x_{c,i}^{\,p}\Big)^{1/p}, \qquad \mathbf{f} = [f_1, \dots, f_D] / \lVert \cdot \rVert, \tag{G}$$
 #
-# with a learnable exponent $p$ ($p = 1$: mean pooling, $p \to \infty$: max pooling; 3 at initialisation).
-# A $D$-dimensional descriptor against NetVLAD's $K \cdot D$. `vpr_nb.aggregation.GeM` clamps the activations
-# at $\varepsilon = 10^{-6}$ before the power, so it needs no ReLU in front of it.
+# The exponent $p$ is learnable: 3 at initialisation, $p = 1$ is mean pooling, $p \to \infty$ max pooling.
+# It gives $D$ numbers, NetVLAD $K \cdot D$. `vpr_nb.aggregation.GeM` clamps the activations
+# at $\varepsilon = 10^{-6}$ before the power, so it needs no ReLU.
 
 # %% [markdown]
 # ## Build it: BoW, VLAD and NetVLAD in plain torch
@@ -165,9 +161,9 @@ def netvlad_by_hand(fmap, w, b, c):              # one image's feature map [D, H
 # %% [markdown]
 # ### A toy vocabulary in 2-D
 #
-# Three centroids and 300 descriptors in the plane. BoW keeps only the counts; VLAD keeps the mean
-# offset of each cell's descriptors from its centroid. With the vladv2 weights of Eq. (3), the soft
-# assignment tends to the hard one as $\alpha$ grows, and so does NetVLAD to VLAD.
+# Three centroids and 300 descriptors in the plane. BoW keeps the counts; VLAD keeps the mean offset of each
+# cell's descriptors from its centroid. With the vladv2 weights of Eq. (3), soft assignment tends to hard as
+# $\alpha$ grows, and NetVLAD to VLAD.
 
 # %%
 gen = torch.Generator().manual_seed(0)
@@ -195,17 +191,16 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 1.** Soft assignment of Eq. (3) on the toy 2-D vocabulary at α = 0.3, 3 and 30: each point of the
-# plane is coloured by its weights for the three clusters (as RGB), with the toy descriptors (black) and the
-# centroids (white stars). A large α approaches VLAD's hard assignment.
+# **Figure 1.** Soft assignment of Eq. (3) on the toy vocabulary at α = 0.3, 3 and 30. Each point of the plane
+# is coloured by its three cluster weights (as RGB); black dots are descriptors, white stars centroids. A large
+# α approaches VLAD's hard assignment.
 
 # %% [markdown]
 # ## Use `vpr_nb`: the same layer from the library
 #
-# `vpr_nb.aggregation.NetVLAD` computes Eq. (4) for a whole batch with one `bmm` (no loop over
-# clusters). Its parameters are named as in the public `pytorch-NetVlad` layer (`conv.weight`,
-# `conv.bias` for vladv2, `centroids`), so those checkpoints load with `load_state_dict`. Same weights,
-# same output as the derivation above:
+# `vpr_nb.aggregation.NetVLAD` computes Eq. (4) for a whole batch with one `bmm`. Its parameters are named as
+# in the public `pytorch-NetVlad` layer (`conv.weight`, `conv.bias` for vladv2, `centroids`), so those
+# checkpoints load with `load_state_dict`. Same weights, same output as the derivation above:
 
 # %%
 vpr_nb.seed_everything(0)
@@ -223,21 +218,15 @@ for vladv2 in (False, True):
 # %% [markdown]
 # ## The course backbone and its local features
 #
-# Both papers of this course fine-tune a *pretrained* backbone (NetVLAD: ImageNet VGG16, only conv5 trains).
-# Here the pretrained network is the **course backbone**: the course's `SmallCNN` (32×48 images → an 8×12
-# map of $N = 96$ local features with $D = 128$ channels), pretrained with the Multi-Similarity loss and GeM
-# (plus a local contrastive term on the features before its last ReLU, which keeps them diverse and stable
-# across conditions) on synthetic worlds with seeds $\ge 100$, never on the seed-0 world used below.
-# `course_backbone(k)` trains its last $k$ of 4 blocks (1: the final 1×1 projection, the analogue of conv5).
+# Like NetVLAD (ImageNet VGG16, only conv5 trains), we fine-tune a *pretrained* backbone: the **course
+# backbone**, a `SmallCNN`. It maps a 32×48 image to an 8×12 map: $N = 96$
+# local features with $D = 128$ channels. It was pretrained with the Multi-Similarity loss and GeM on
+# synthetic worlds with seeds $\ge 100$, never on the seed-0 world used below. `course_backbone(k)` trains its
+# last $k$ of 4 blocks (1 = the final 1×1 projection, like conv5).
 #
-# That last block ends in a **ReLU**, which can switch a position off: exactly zero in every channel (the
-# printout below counts such positions). A zero vector has no direction: NetVLAD L2-normalises each local
-# feature (it stays 0), gives it the uniform assignment $\mathrm{softmax}(0) = 1/K$ (vladv1 has no bias), so
-# every zero position adds $-c_k/K$ to every cluster's residual sum, the same vector in every image. The
-# public NetVLAD code (`pytorch-NetVlad`) reads VGG16 at conv5_3 **before** its ReLU, and DINOv2's tokens
-# (SALAD, notebook 05) come out of a LayerNorm: both are signed, dense features. Which side serves NetVLAD
-# better depends on the backbone, so we look at both and measure below; the course recipe reads the backbone's
-# output, after the ReLU (`course_backbone()`), and `before_relu` swaps the ReLU for an identity:
+# That last block ends in a **ReLU**. The public NetVLAD code reads VGG16's conv5_3 **before** its ReLU, so
+# we measure both sides. The recipe reads the output, after the ReLU; `before_relu` swaps the ReLU
+# for an identity. A ReLU can switch a position off (zero in every channel); the printout shows none here.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -292,10 +281,9 @@ assert torch.equal(course_backbone(final_relu=False)(x), before)
 # %% [markdown]
 # ## k-means initialisation and $\alpha$ on the course backbone
 #
-# As in the NetVLAD code, we sample local features of training images, L2-normalise them, run faiss
-# k-means and compute $\alpha$ with Eq. (6). `vpr_nb.aggregation.sample_local_descriptors` never draws an
-# exactly-zero feature (it has no direction to cluster, and a zero centroid would break the layer on the
-# ReLU output), and `vpr_nb.models.init_netvlad` packages the same step.
+# As in the NetVLAD code, we sample local features of training images, L2-normalise them, run faiss k-means
+# and compute $\alpha$ with Eq. (6). `vpr_nb.aggregation.sample_local_descriptors` skips exactly-zero
+# features, which have no direction. `vpr_nb.models.init_netvlad` packages the same step.
 
 # %%
 KM = EXPERIMENT["netvlad"]["kmeans"]
@@ -346,13 +334,13 @@ plt.show()
 
 # %% [markdown]
 # **Figure 2.** The k-means-initialised NetVLAD on one training image: the image, each position's nearest
-# cluster $\arg\max_k \bar a_k$ over it (one colour per cluster), how decided the soft assignment of Eq. (3) is,
-# and the norm of each cluster's residual sum $V_k$, Eq. (4), before intra-normalisation.
+# cluster $\arg\max_k \bar a_k$ (one colour per cluster), how decided the soft assignment (3) is, and the norm
+# of each residual sum $V_k$ (4) before intra-normalisation.
 
 # %% [markdown]
-# **Before or after the ReLU, measured.** The same k-means-initialised NetVLAD, nothing trained, on the
-# frozen backbone read after and before its last ReLU: test Recall@N and the mean pairwise cosine of the
-# test database descriptors (close to 1: every image gets nearly the same descriptor). References: raw
+# **Before or after the ReLU, measured.** The same k-means-initialised NetVLAD, nothing trained, reads the
+# frozen backbone after and before its last ReLU. The table gives test Recall@N and the mean pairwise cosine of
+# test database descriptors (near 1: all images look alike). References: raw
 # pixels and the frozen backbone with GeM (Eq. G, $p = 3$), also untrained.
 
 # %%
@@ -385,16 +373,16 @@ for name, r in fixed.items():
 # %% [markdown]
 # ## Experiment: GeM vs NetVLAD, fine-tuned
 #
-# Both models use the course backbone read after its last ReLU (the recipe) with its **last block trainable** (the
-# analogue of NetVLAD's conv5; a third row keeps the backbone **frozen** and trains only the NetVLAD layer),
-# the same weakly supervised triplet pipeline (notebook 03: each training query, its best potential
-# positive facing the same way, the 5 hardest of 300 random negatives beyond 25 m, margin 0.1), the same
-# optimiser (Adam, lr $10^{-3}$, StepLR) and the **same number of epochs**; for a given seed all rows see the
-# same mining randomness. The model with the best validation Recall@1 is kept and evaluated once on the
-# test split. GeM gives a 128-D descriptor, NetVLAD with $K = 16$ a $16 \cdot 128 = 2048$-D one.
+# Both models read the course backbone after its last ReLU, with its **last block trainable** (like NetVLAD's
+# conv5). A third row keeps the backbone **frozen** and trains only the NetVLAD layer. All rows
+# share the triplet pipeline of notebook 03 (best positive facing the same way, the 5 hardest of 300 random
+# negatives beyond 25 m, margin 0.1). They share the optimiser (Adam, lr $10^{-3}$, StepLR), the **number of
+# epochs** and, per seed, the mining randomness. The
+# best model on validation Recall@1 is tested once. Descriptors: GeM 128-D, NetVLAD ($K = 16$)
+# $16 \cdot 128 = 2048$-D.
 #
-# The CI profile trains one seed for one epoch (the notebook must run in under a minute on two cores): a
-# smoke test. The committed reproduce profile below trains every row for the full budget on 5 seeds.
+# The CI profile trains one seed for one epoch: a smoke test. The committed reproduce profile below trains
+# each row fully on 5 seeds.
 
 # %%
 TB = EXPERIMENT["trainable_blocks"]
@@ -488,11 +476,10 @@ print(f"(the committed run took {res['seconds'] / 60:.1f} min wall time, torch o
 
 
 # %% [markdown]
-# **Verdicts** (paired by seed: same world, same mining randomness; a difference counts only beyond 2 standard
-# errors, `vpr_nb.results.paired_verdict`; an untrained reference is one number, repeated for every seed).
-# A comparison against a fine-tuned row is made only when that baseline beats its own starting point by more
-# than 2 SE (`vpr_nb.results.gated_verdict`); a comparison against an untrained reference is itself such a
-# control:
+# **Verdicts.** Rows are paired by seed, and a difference counts only beyond 2 standard errors
+# (`vpr_nb.results.paired_verdict`); an untrained reference is repeated for every seed. A fine-tuned
+# baseline is compared against only if it beats its own start by more than 2 SE
+# (`vpr_nb.results.gated_verdict`). An untrained reference is itself such a control:
 
 # %%
 def r1(name):
@@ -534,19 +521,16 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 3.** Reproduce profile: test Recall@N of every row, fine-tuned rows averaged over the seeds (left),
-# and validation Recall@1 per epoch of the fine-tuned rows, mean ± standard deviation over the seeds (right).
+# **Figure 3.** Reproduce profile. Left: test Recall@N of every row (fine-tuned rows: mean over seeds).
+# Right: validation Recall@1 per epoch of the fine-tuned rows (mean ± std over seeds).
 
 # %% [markdown]
 # ## What NetVLAD assigns where
 #
-# For three test queries: the image, the hard cluster of each of the 8×12 positions ($\arg\max_k \bar a_k$,
-# one colour per cluster) with the k-means initialisation and after training, and the confidence
-# $\max_k \bar a_k$ after training. Positions that look alike (sky, road, a facade type) share a
-# cluster; training reshapes the clusters for the retrieval task. The trained model is the reproduce profile's
-# NetVLAD of seed 0 (its trained block and NetVLAD layer are committed beside the results and loaded with
-# their hash checked, `vpr_nb.trained_weights`), so the figure shows the model of the table, not the
-# one-epoch CI run.
+# For three test queries we show each position's hard cluster ($\arg\max_k \bar a_k$) before and after
+# training, and the confidence $\max_k \bar a_k$. Positions that look alike (sky, road, a facade type) share a
+# cluster; training reshapes the clusters for retrieval. The trained model is the committed reproduce-profile
+# NetVLAD of seed 0 (`vpr_nb.trained_weights`), not the CI run.
 
 # %%
 def assignments(model, images):
@@ -575,10 +559,8 @@ print(f"mean max assignment on these images: k-means init {a_init.amax(1).mean()
       f"trained {a_trained.argmax(1).unique().numel()} of {K}")
 
 # %% [markdown]
-# **Figure 4.** Three test queries (left column), the cluster with the largest assignment at every position
-# of the feature map at the k-means initialisation and after training (middle columns, one colour per
-# cluster), and the largest assignment weight after training (right); trained: the committed reproduce-profile
-# NetVLAD of seed 0.
+# **Figure 4.** Three test queries (left); each position's cluster at the k-means initialisation and after
+# training (middle, one colour per cluster); the largest assignment weight after training (right).
 
 # %%
 record("04_netvlad", {
@@ -596,11 +578,11 @@ record("04_netvlad", {
 # ## Graded exercise: which descriptors does $\alpha$ leave soft?
 #
 # With `vladv2=False` the layer gives a local descriptor $x_i$ the soft weight $\propto e^{\alpha \cos(x_i, c_k)}$
-# for cluster $k$ (centroid directions, Eq. 3 with the init above). Eq. (6) makes the best/second-best weight
-# ratio 100 only *on average* (of its log). Write `weak_assignment_share(descs, cents, alpha, ratio=100.0)`:
-# the fraction of the L2-normalised descriptors `descs` $[N, D]$ (numpy; centroids `cents` $[K, D]$ are *not*
-# normalised) whose best weight is *less* than `ratio` times their second-best weight, as a Python float, in
-# numpy (no `vpr_nb`). Grading runs only the notebook's import cells and your solution cell.
+# for cluster $k$ (Eq. 3 with the init above). Eq. (6) makes the best/second-best weight ratio 100 only *on
+# average* (of its log). Write `weak_assignment_share(descs, cents, alpha, ratio=100.0)` in numpy (no
+# `vpr_nb`). It returns (a Python float) the fraction of the L2-normalised descriptors `descs` $[N, D]$
+# whose best weight is *less* than `ratio` times their second-best weight. The centroids `cents` $[K, D]$ are
+# *not* normalised. Grading runs only the notebook's import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-04-soft-share", "locked": false, "schema_version": 3, "solution": true}
 def weak_assignment_share(descs, cents, alpha, ratio=100.0):
@@ -638,12 +620,11 @@ check("weak_assignment_share", [
 # %% [markdown]
 # ## Graded exercise: predict, then compute the descriptor of a switched-off image
 #
-# A ReLU can switch a local feature off entirely: exactly zero in every channel (none are on the course
-# backbone, the printout above, but a backbone trained otherwise can have many). Take an image whose $N$
-# local features are **all** exactly zero and the layer of this notebook
-# (`vladv2=False`: the soft assignment is a softmax of $\alpha \cos(x_i, c_k)$ of the L2-normalised feature, an
-# all-zero feature stays zero after L2 normalisation; then intra-normalisation of each cluster's residual sum
-# and a final L2 normalisation).
+# A ReLU can switch a local feature off: zero in every channel. The course backbone has none, other backbones
+# can have many. Take an image whose $N$ local features are **all**
+# zero, and this notebook's layer (`vladv2=False`). Recall its steps: each feature is L2-normalised (zero stays
+# zero) and soft-assigned by a softmax of $\alpha \cos(x_i, c_k)$; then each residual sum and the whole vector
+# are L2-normalised.
 #
 # **Predict first:** its NetVLAD descriptor is (a) `"zero"`, (b) `"depends on N"` (the number of local
 # features), or (c) `"fixed by the centroids"` (the same for every such image). Replace the `raise` below by
@@ -667,11 +648,10 @@ check("ZERO_IMAGE", [Case("the NetVLAD descriptor of an image whose local featur
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Then compute it.** Write `zero_image_descriptor(cents)` for the centroids `cents` $[K, D]$ (numpy, not
-# normalised): the final NetVLAD descriptor of such an image as a numpy array $[K \cdot D]$, cluster by
-# cluster (entries $kD, \dots, kD + D - 1$ belong to cluster $k$), in numpy (no `vpr_nb`). What does your
-# result say about the mean pairwise cosine of untrained descriptors of images with many switched-off
-# features?
+# **Then compute it.** Write `zero_image_descriptor(cents)` in numpy (no `vpr_nb`) for centroids `cents`
+# $[K, D]$ (not normalised). Return the final NetVLAD descriptor of such an image, a numpy array $[K \cdot D]$
+# ordered cluster by cluster (entries $kD, \dots, kD + D - 1$ for cluster $k$). What does it say about the mean
+# pairwise cosine of untrained descriptors when many features are switched off?
 
 # %% nbgrader={"grade": false, "grade_id": "ex-04-zero-descriptor", "locked": false, "schema_version": 3, "solution": true}
 def zero_image_descriptor(cents):
@@ -710,88 +690,76 @@ check("zero_image_descriptor", [Case(f"{k} random centroids of dimension {d}", (
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Hard vs soft.** Replace `soft_assign` by `hard_assign` inside `netvlad_by_hand`: is the result
-#    still differentiable with respect to the centroids? With respect to the $1\times1$ conv weights?
-#    <details><summary>Hint</summary>Run <code>.backward()</code> on the sum of the output with
-#    <code>requires_grad_()</code> centroids and conv weights, and look at which <code>.grad</code> are zero or
-#    missing: an <code>argmax</code> has no gradient, a residual $x_i - c_k$ does.</details>
-# 2. **No intra-normalisation.** Remove the row-wise `F.normalize` in `vlad_by_hand`, rebuild a layer
-#    without it (subclass `NetVLAD`) and retrain. Which clusters dominate the descriptor now?
-#    <details><summary>Hint</summary>Without it a cluster's block has the norm of its residual sum, which
-#    grows with how many features it receives: print the norm of each cluster's block for a few test images
-#    before and after training.</details>
-# 3. **The 100:1 rule.** Initialise with $\alpha$ ten times smaller and ten times larger than Eq. (6).
-#    How do the untrained test recall and the mean max assignment change?
-#    <details><summary>Hint</summary>After <code>init_netvlad</code> (or <code>kmeans_init</code>), scale the
-#    layer's assignment weights: they are $\alpha \hat c_k$ in <code>model.aggregator.conv</code>. The graded
-#    exercise's function tells you how many descriptors each α leaves soft.</details>
-# 4. **Before the ReLU.** Train `build_model(before_relu(1), "netvlad", num_clusters=K)` (the ReLU removed,
-#    as pytorch-NetVlad reads VGG16) with `run`'s recipe. Does training close the gap of the untrained table?
-#    <details><summary>Hint</summary>Train it with the same <code>TripletSource</code> and
-#    <code>TrainConfig</code> as the experiment rows (read them in <code>run</code>), on the same seeds, and put
-#    its test R@1 beside the "after the ReLU" and "before the ReLU" rows of the untrained table.</details>
+# 1. **Hard vs soft.** Replace `soft_assign` by `hard_assign` inside `netvlad_by_hand`. Is the result still
+#    differentiable with respect to the centroids? And to the $1\times1$ conv weights?
+#    <details><summary>Hint</summary>Call <code>.backward()</code> on the output's sum and see which
+#    <code>.grad</code> are zero or missing. An argmax has no gradient; a residual $x_i - c_k$ does.</details>
+# 2. **No intra-normalisation.** Drop the row-wise `F.normalize` of `vlad_by_hand` in a `NetVLAD` subclass
+#    and retrain. Which clusters dominate the descriptor now?
+#    <details><summary>Hint</summary>A cluster's block then has the norm of its residual sum, which grows with
+#    the features it receives. Print each block's norm for a few test images.</details>
+# 3. **The 100:1 rule.** Initialise with $\alpha$ ten times smaller and ten times larger than Eq. (6). How do
+#    the untrained test recall and the mean max assignment change?
+#    <details><summary>Hint</summary>After <code>init_netvlad</code>, scale the assignment weights
+#    $\alpha \hat c_k$ in <code>model.aggregator.conv</code>. The graded exercise counts the descriptors each α
+#    leaves soft.</details>
+# 4. **Before the ReLU.** Train `build_model(before_relu(1), "netvlad", num_clusters=K)` with `run`'s recipe.
+#    Does training close the gap of the untrained table?
+#    <details><summary>Hint</summary>Use the seeds and settings of <code>run</code>. Put its test R@1 beside
+#    the two k-means-init rows of the untrained table.</details>
 # 5. **vladv2.** Train with `vladv2=True` and `normalize_input=False`; Eq. (3) now holds exactly. Does it
 #    train better here?
-#    <details><summary>Hint</summary>With <code>vladv2=True</code> the conv has a bias, $-\alpha \lVert c_k
-#    \rVert^2$; check with the toy vocabulary that the assignment equals a softmax of $-\alpha \lVert x - c_k
-#    \rVert^2$ before you train.</details>
-# 6. **Budget.** NetVLAD's descriptor is 16× larger than GeM's. Reduce it with PCA (faiss `PCAMatrix`) to
-#    128-D after training and compare the Recall table at equal descriptor size.
-#    <details><summary>Hint</summary>Fit the PCA on the <em>training</em> database descriptors only
-#    (<code>faiss.PCAMatrix(2048, 128)</code>, <code>.train</code>, <code>.apply</code>), L2-normalise after it,
-#    and evaluate with <code>evaluate_descriptors</code>.</details>
+#    <details><summary>Hint</summary>The conv now has a bias, $-\alpha \lVert c_k \rVert^2$. First check on
+#    the toy vocabulary that the assignment is a softmax of $-\alpha \lVert x - c_k \rVert^2$.</details>
+# 6. **Budget.** NetVLAD's descriptor is 16× larger than GeM's. Reduce it to 128-D with PCA after training
+#    and compare recall at equal size.
+#    <details><summary>Hint</summary>Fit <code>faiss.PCAMatrix(2048, 128)</code> on the <em>training</em>
+#    database descriptors only. L2-normalise, then use <code>evaluate_descriptors</code>.</details>
 #
 # ## Takeaways
 #
-# * BoW counts, VLAD sums residuals, NetVLAD soft-assigns (a $1\times1$ conv + softmax, Eq. 3) and learns
-#   centroids and assignment weights separately (Eq. 4); three normalisations follow: each local descriptor,
-#   each cluster (intra-normalisation), the whole vector. The residual sum is one batched matrix product, and
-#   `vpr_nb.aggregation.NetVLAD` loads the public checkpoints by name.
-# * k-means gives the centroids, and Eq. (6) a softmax sharp enough that each descriptor mostly votes for one
-#   cluster (best/second-best weight 100:1 on average of the log). On the pretrained course backbone this
-#   initialisation alone, nothing trained, retrieves about as well as the frozen backbone with GeM (untrained
-#   table: R@1 0.758 vs 0.748).
-# * Where the features are read matters, and which side of the last ReLU is better depends on the backbone.
-#   The public NetVLAD code reads VGG16's conv5_3 before its ReLU; the course backbone, pretrained with a local
-#   contrastive term on the features *before* its ReLU, gives NetVLAD a better start *after* it (0.758 vs
-#   0.654), so the course recipe reads its output. A ReLU that switched positions off would hurt: each zero
-#   feature adds the same $-c_k/K$ to every cluster of every image (the graded exercise), and `init_netvlad`
-#   skips such features (none are zero on this backbone, the printout).
-# * Fine-tuned with the same triplets, optimiser, epochs and seeds, **NetVLAD beats GeM on this world**
-#   (+0.033 ± 0.010 R@1 over 5 paired seeds, beyond 2 SE; the control passes: GeM gains +0.045 ± 0.009 over
-#   its frozen start), the order the NetVLAD paper reports against the pooling of its day. Training the
-#   backbone's last block adds to NetVLAD beyond 2 SE (+0.052 ± 0.011 over training the layer alone), and
-#   the layer alone still improves on its k-means start (+0.017 ± 0.003). Caveats for reading this against
-#   the paper: the course backbone was pretrained with GeM pooling, the NetVLAD paper compared against max
-#   and average pooling of an ImageNet VGG16 (GeM came two years later), on Pittsburgh, with 64 clusters.
-# * The live CI numbers above come from one epoch on one seed: a smoke test. Compare methods with the committed
-#   reproduce-profile table and its verdicts.
+# * BoW counts, VLAD sums residuals, and NetVLAD soft-assigns (a $1\times1$ conv + softmax, Eq. 3). NetVLAD
+#   learns centroids and assignment weights separately (Eq. 4). Three normalisations follow: each descriptor,
+#   each cluster, the whole vector. `vpr_nb.aggregation.NetVLAD` is one batched product and loads the public
+#   checkpoints.
+# * k-means gives the centroids; Eq. (6) makes each descriptor mostly vote for one cluster (100:1 on average
+#   of the log). This initialisation alone, untrained, retrieves about as well as the frozen backbone with GeM
+#   (R@1 0.758 vs 0.748).
+# * Which side of the last ReLU serves NetVLAD better depends on the backbone. The public code reads VGG16
+#   before its ReLU. The course backbone, pretrained with a local contrastive term on its
+#   features *before* the ReLU, gives NetVLAD a better start *after* it (0.758 vs 0.654). So the recipe reads
+#   its output. Zero features would hurt: each adds the same $-c_k/K$ to every image (the graded exercise).
+# * Fine-tuned with the same recipe and seeds, **NetVLAD beats GeM on this world**: +0.033 ± 0.010 R@1 over 5
+#   paired seeds, beyond 2 SE. The control passes: GeM gains +0.045 ± 0.009 over its frozen start. The NetVLAD
+#   paper reports the same order against the pooling of its day. Training the backbone's last block adds
+#   +0.052 ± 0.011 over the layer alone, which still beats its k-means start (+0.017 ± 0.003).
+# * A caveat: our backbone was pretrained with GeM, while the paper compared against max and average pooling
+#   of an ImageNet VGG16, on Pittsburgh, with 64 clusters.
+# * The live CI numbers are one epoch on one seed, a smoke test. Compare methods with the committed table
+#   and its verdicts.
 
 # %% [markdown]
 # ## Self-check
 #
-# 1. What do BoW, VLAD and NetVLAD each keep of the local descriptors assigned to a cluster?
-#    <details><summary>Answer</summary>BoW keeps how many there are (a count), VLAD the sum of their residuals
-#    to the centroid (hard assignment), NetVLAD the same residual sum with soft, learnable assignment weights
-#    (Eqs. 3–4), followed by intra-normalisation and a final L2 normalisation.</details>
-# 2. What does Eq. (6) choose α for, and does it make every descriptor's assignment sharp?
+# 1. What do BoW, VLAD and NetVLAD each keep of the descriptors assigned to a cluster?
+#    <details><summary>Answer</summary>BoW keeps their count, VLAD the sum of their residuals to the centroid
+#    (hard assignment). NetVLAD keeps the same sum with soft, learnable weights (Eqs. 3–4), then
+#    normalises.</details>
+# 2. What does Eq. (6) choose α for? Does it make every descriptor's assignment sharp?
 #    <details><summary>Answer</summary>It makes the best/second-best soft weight ratio 100 on average (of its
-#    log) over the sampled descriptors; descriptors whose two nearest centroids are almost equally close stay
-#    soft.</details>
+#    log). Descriptors whose two nearest centroids are almost equally close stay soft.</details>
 # 3. The public NetVLAD code reads VGG16 before its last ReLU. Why does the course read its backbone after it?
-#    <details><summary>Answer</summary>Because it measured better here: the k-means-initialised layer on the
-#    frozen course backbone reaches R@1 0.758 after the ReLU and 0.654 before it (untrained table). Which side
-#    is better depends on how the backbone was trained; a ReLU that switched many positions off would make
-#    each zero feature add the same $-c_k/K$ to every cluster of every image.</details>
+#    <details><summary>Answer</summary>It measured better here: the untrained, k-means-initialised layer
+#    reaches R@1 0.758 after the ReLU and 0.654 before it. Which side wins depends on the backbone.</details>
 
 # %% [markdown]
 # ## References
 #
 # * R. Arandjelović, P. Gronát, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
 #   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247); code:
-#   [github.com/Relja/netvlad](https://github.com/Relja/netvlad) (MATLAB, the authors'),
-#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad) (the PyTorch port whose layer
-#   and checkpoints `vpr_nb.aggregation.NetVLAD` follows).
+#   [github.com/Relja/netvlad](https://github.com/Relja/netvlad) (MATLAB),
+#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad) (PyTorch; `vpr_nb` follows its layer and
+#   checkpoints).
 # * H. Jégou, M. Douze, C. Schmid, P. Pérez. *Aggregating local descriptors into a compact image
 #   representation* (VLAD). CVPR 2010. [doi:10.1109/CVPR.2010.5540039](https://doi.org/10.1109/CVPR.2010.5540039).
 # * R. Arandjelović, A. Zisserman. *All about VLAD* (intra-normalisation). CVPR 2013.
@@ -803,6 +771,6 @@ check("zero_image_descriptor", [Case(f"{k} random centroids of dimension {d}", (
 #   [github.com/filipradenovic/cnnimageretrieval-pytorch](https://github.com/filipradenovic/cnnimageretrieval-pytorch).
 # * K. Simonyan, A. Zisserman. *Very deep convolutional networks for large-scale image recognition* (VGG16).
 #   ICLR 2015. [arXiv:1409.1556](https://arxiv.org/abs/1409.1556).
-# * J. Johnson, M. Douze, H. Jégou. *Billion-scale similarity search with GPUs* (faiss, used for k-means and
-#   search). [arXiv:1702.08734](https://arxiv.org/abs/1702.08734); code:
+# * J. Johnson, M. Douze, H. Jégou. *Billion-scale similarity search with GPUs* (faiss: k-means and search).
+#   [arXiv:1702.08734](https://arxiv.org/abs/1702.08734); code:
 #   [github.com/facebookresearch/faiss](https://github.com/facebookresearch/faiss).
