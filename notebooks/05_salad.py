@@ -18,20 +18,14 @@
 # %% [markdown]
 # # 05 · SALAD: aggregation as optimal transport
 #
-# **Aim.** NetVLAD (notebook 04) lets every local feature spread its weight over the clusters with a
-# softmax, independently of the other features. SALAD (Izquierdo & Civera, CVPR 2024) assigns *all*
-# features to the clusters **jointly**, as an optimal-transport problem solved by a few Sinkhorn
-# iterations, with a **dustbin** that absorbs uninformative features. You will
+# **Aim.** NetVLAD (notebook 04) gives each local feature a softmax over the clusters, on its own. SALAD
+# (Izquierdo & Civera, CVPR 2024) assigns *all* features to the clusters **jointly**, by optimal transport
+# solved with a few Sinkhorn iterations. A **dustbin** absorbs uninformative features. You will
 #
-# * write log-space Sinkhorn from scratch on a toy matrix, check its marginals and see the transport
-#   plan as an image;
-# * derive SALAD's aggregation and check it against `vpr_nb.aggregation.SALAD` (state-dict compatible
-#   with the published DINOv2-SALAD aggregator);
-# * fine-tune SALAD on the **course backbone** (pretrained, its last block trainable, as SALAD trains
-#   DINOv2's last blocks) and compare it with GeM and NetVLAD under the course recipe, at their usual
-#   descriptor sizes and at equal size (512-D): one seed live, five seeds in the committed reproduce profile;
-# * measure whether the trained Sinkhorn plan is **non-uniform** (distinct cluster vectors, low
-#   per-feature entropy), what makes SALAD start collapsed on this backbone, and why it does not win here.
+# * write log-space Sinkhorn from scratch on a toy matrix and check its marginals;
+# * derive SALAD's aggregation and check it against `vpr_nb.aggregation.SALAD`;
+# * fine-tune SALAD on the **course backbone** and compare it with GeM and NetVLAD, at usual and at equal size;
+# * measure whether the trained plan is **non-uniform**, and why SALAD does not win here.
 
 # %% tags=["parameters", "grade-deps:ex-05-cluster-means"]
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
@@ -90,40 +84,37 @@ print(f"profile {PROFILE}: {RUN['methods']} methods, at most {RUN['max_epochs']}
 # %% [markdown]
 # ## Theory
 #
-# **Optimal transport.** $n$ local features must send their mass to $m$ clusters. With a score matrix
-# $S \in \mathbb{R}^{m \times n}$ (how well feature $i$ fits cluster $k$), find a transport plan
-# $P \ge 0$ with prescribed row sums $a \in \mathbb{R}^m$ (what each cluster receives) and column sums
-# $b \in \mathbb{R}^n$ (what each feature gives), maximising the score plus an entropy term:
+# **Optimal transport.** $n$ local features send their mass to $m$ clusters. A score matrix
+# $S \in \mathbb{R}^{m \times n}$ says how well feature $i$ fits cluster $k$. A transport plan $P \ge 0$ has
+# row sums $a \in \mathbb{R}^m$ (what each cluster receives) and column sums $b \in \mathbb{R}^n$ (what each
+# feature gives). The best plan maximises the score plus an entropy term:
 #
 # $$P^\star = \arg\max_{P\,\mathbf{1} = a,\; P^\top \mathbf{1} = b} \;\langle P, S\rangle - \sum_{k,i} P_{ki}\,(\log P_{ki} - 1). \tag{1}$$
 #
-# **Sinkhorn** (Cuturi, NeurIPS 2013). The solution has the form $P = \mathrm{diag}(e^{u})\, e^{S}\, \mathrm{diag}(e^{v})$;
-# alternately fitting the rows and the columns gives, in log space (stable for large scores),
+# **Sinkhorn** (Cuturi, NeurIPS 2013). The solution is $P = \mathrm{diag}(e^{u})\, e^{S}\, \mathrm{diag}(e^{v})$.
+# Fitting rows and columns in turn gives, in log space for stability,
 #
 # $$u_k \leftarrow \log a_k - \log \sum_i e^{S_{ki} + v_i}, \qquad v_i \leftarrow \log b_i - \log \sum_k e^{S_{ki} + u_k}, \qquad \log P_{ki} = S_{ki} + u_k + v_i . \tag{2}$$
 #
 # After a $v$ update the column sums are exact; the row sums converge geometrically.
 #
-# **The dustbin.** With $n > m$ features, forcing every feature into a cluster would also aggregate sky
-# and road. SALAD appends a row with one learned score $z$ for every feature, $\bar S = [S; z\,\mathbf{1}^\top]$
-# of size $(m+1) \times n$, and asks
+# **The dustbin.** Forcing every feature into a cluster would also aggregate sky and road. SALAD appends a
+# row with one learned score $z$, $\bar S = [S; z\,\mathbf{1}^\top]$ of size $(m+1) \times n$, and asks
 #
 # $$a = [\underbrace{1, \dots, 1}_{m}, \; n - m], \qquad b = [\underbrace{1, \dots, 1}_{n}] \tag{3}$$
 #
-# so that each feature distributes mass 1, each cluster receives mass 1 and the dustbin takes the
-# rest: this needs $n > m$. (The published code divides $a, b$ by $n+m$ during the iterations and
-# multiplies back at the end, and runs only **3 iterations**.)
+# Each feature gives mass 1, each cluster receives 1 and the dustbin the rest, so $n > m$ is needed. The
+# published code runs only **3 iterations**, with $a, b$ divided by $n+m$ (multiplied back at the end).
 #
-# **SALAD** (Izquierdo & Civera, CVPR 2024). From the local features $x_i$ and the global token $t$ of the
-# backbone: projected features $f_i = \mathrm{MLP}_f(x_i) \in \mathbb{R}^{l}$, scores
-# $s_i = \mathrm{MLP}_s(x_i) \in \mathbb{R}^m$, the plan $P$ of Eq. (2)-(3) without its dustbin row, and
+# **SALAD.** From local features $x_i$ and a global token $t$, SALAD computes projected features
+# $f_i = \mathrm{MLP}_f(x_i) \in \mathbb{R}^{l}$, scores $s_i = \mathrm{MLP}_s(x_i) \in \mathbb{R}^m$, and the
+# plan $P$ of Eqs. (2)-(3) without its dustbin row. Then
 #
 # $$V_{\cdot k} = \sum_{i=1}^{n} P_{ki}\, f_i \in \mathbb{R}^{l} \quad\text{(no centroid residual, unlike NetVLAD's Eq. 4)}, \tag{4}$$
 #
 # $$\mathrm{SALAD}(x, t) = \mathrm{L2}\Big(\big[\, \mathrm{L2}(\mathrm{MLP}_g(t)),\; \mathrm{vec}\big(V_{\cdot 1}/\lVert V_{\cdot 1}\rVert, \dots, V_{\cdot m}/\lVert V_{\cdot m}\rVert\big)\big]\Big), \tag{5}$$
 #
-# of size $d_g + m \cdot l$ (256 + 64·128 = 8448 in the paper). Eq. (4) for all clusters at once is the
-# matrix product $F P^\top$ ($[l \times n] \cdot [n \times m]$).
+# of size $d_g + m \cdot l$ (8448 in the paper). Eq. (4) for all clusters is one product $F P^\top$.
 
 # %% [markdown]
 # ## Build it: Sinkhorn with a dustbin, on a toy matrix
@@ -154,9 +145,8 @@ for iters in (1, 3, 100):
           f"cluster row sums {np.round(plan[:4].sum(1).numpy(), 3).tolist()}, dustbin row {plan[4].sum():.3f} (n - m = 8)")
 
 # %% [markdown]
-# After 100 iterations every marginal of Eq. (3) holds; after SALAD's 3 iterations the columns are
-# exact and the rows close. Figure 1 draws the plans and the row error with the library's batched
-# `vpr_nb.aggregation.sinkhorn`, which "Use `vpr_nb`" below checks equal to `sinkhorn_by_hand`:
+# After 100 iterations every marginal of Eq. (3) holds. After 3, the columns are exact and the rows close.
+# Figure 1 uses the library's `vpr_nb.aggregation.sinkhorn`, checked equal to `sinkhorn_by_hand` below:
 
 # %%
 iters_axis = np.arange(1, 31)
@@ -181,18 +171,17 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 1.** The toy score matrix (4 clusters, 12 features): a softmax over clusters as in NetVLAD
-# (left), the Sinkhorn plan with a dustbin (last row) after 1 and 3 iterations (middle), and the largest row
-# marginal error against the number of iterations (right, log scale).
+# **Figure 1.** Toy scores, 4 clusters and 12 features. Left: a softmax over clusters (NetVLAD). Middle:
+# the Sinkhorn plan with a dustbin (last row) after 1 and 3 iterations. Right: the largest row marginal error
+# per iteration (log scale).
 
 # %% [markdown]
-# The softmax plan (left) lets one cluster take most features and others none; the transport plan
-# spreads one unit of mass to each cluster and sends the leftover to the dustbin (last row).
+# The softmax lets one cluster take most features and others none. The transport plan gives each cluster
+# one unit of mass and the dustbin the rest.
 #
-# **What does the learned dustbin score $z$ do?** The dustbin row of $\bar S$ is the same number $z$ for
-# every feature. The first $u$ update of Eq. (2) subtracts $\log \sum_i e^{z + v_i}$ from that row, which
-# removes $z$ again, and nothing else reads it: after one iteration the plan no longer depends on $z$, and
-# $z$ gets no gradient through the plan. Measured on the toy matrix:
+# **What does the dustbin score $z$ do?** The dustbin row of $\bar S$ is $z$ for every feature. The first
+# $u$ update of Eq. (2) subtracts $\log \sum_i e^{z + v_i}$ from that row, which removes $z$ again. So the
+# plan no longer depends on $z$, and $z$ gets no gradient. Measured:
 
 # %%
 for iters in (1, 3, 100):
@@ -206,15 +195,12 @@ grad = abs(z_param.grad.item())
 print("gradient of a loss on the 3-iteration plan with respect to z: " + ("below 1e-12" if grad < 1e-12 else f"{grad:.1e}"))
 
 # %% [markdown]
-# Both are zero up to rounding: which features the dustbin takes is decided by the cluster scores
-# alone (a feature that scores low for every cluster goes to the dustbin). A single constant dustbin score,
-# as in Eq. (3) and the published code, is a parameter that does nothing; a per-feature dustbin score
-# (a score head with $m + 1$ outputs) would be needed for the dustbin to learn on its own.
+# Both are zero up to rounding. The cluster scores alone decide what the dustbin takes: a feature that
+# scores low for every cluster goes there. A per-feature dustbin score ($m + 1$ score outputs) could learn.
 #
 # ## Build it: SALAD from the plan
 #
-# Given the projected features, scores and token (the MLP heads are plain 1×1 convolutions and linear
-# layers), Eqs. (4)-(5) take three lines:
+# Given projected features, scores and token, Eqs. (4)-(5) take three lines:
 
 # %%
 def salad_by_hand(f, s, g, z):
@@ -225,11 +211,9 @@ def salad_by_hand(f, s, g, z):
 
 
 # %% [markdown]
-# **The plan on an image.** Eq. (2) on the scores of a real image: a test query of the course's city world
-# (generated here; the rest of the notebook uses it) through the recipe's SALAD start, the course backbone
-# and a SALAD head of $m = 16$ clusters, untrained (`vpr_nb.recipe.build_start`; the section after next
-# explains its standardised inputs). Its score head gives the $16 \times 96$ scores of the $n = 8 \times 12$
-# positions of the feature map, and `sinkhorn_by_hand` their plan with the dustbin row:
+# **The plan on an image.** A test query of the course's city world (generated here, used from now on)
+# goes through the course backbone and an untrained SALAD head with $m = 16$ clusters
+# (`vpr_nb.recipe.build_start`). Its $n = 8 \times 12 = 96$ positions get $16 \times 96$ scores and a plan:
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -252,23 +236,18 @@ plots.plot_salad_plan(plan_query, plan_q, fmap_q.shape[2:])
 plt.show()
 
 # %% [markdown]
-# **Figure 2.** The plan of Eqs. (2)-(3) on one test query, SALAD's 3 iterations from the untrained recipe
-# start. Left: each of the 96 positions of the feature map coloured by the cluster that receives most of its
-# mass; a cross marks the positions that give the dustbin more than $(n - m)/n = 80/96 = 0.83$ of their mass,
-# its share under a uniform plan. Right: the plan itself (log colour scale; the strip above it repeats each
-# position's colour): each column gives mass 1, each of the 16 cluster rows receives about 1, spread thinly
-# over many positions, and the dustbin row (bottom) takes the other 80. Untrained, the plan is close to
-# uniform (every cluster entry near 1/96), yet neighbouring positions of one surface often share a cluster (the
-# road along the bottom rows): the random score head already follows the image content. Figure 4 shows the
-# trained plan.
+# **Figure 2.** The plan on one test query, untrained, 3 iterations. Left: each position coloured by the
+# cluster that receives most of its mass; a cross marks positions giving the dustbin more than 0.83, its
+# uniform share. Right: the plan (log scale). Each cluster row receives about 1 and the dustbin row (bottom)
+# the other 80. The plan is near uniform, yet neighbouring positions of one surface (the road) often share a
+# cluster: the random score head already follows the image content.
 
 # %% [markdown]
 # ## Use `vpr_nb`: the same plan and descriptor from the library
 #
-# `vpr_nb.aggregation.sinkhorn` runs Eqs. (2)-(3) on a batch of score matrices, and `vpr_nb.aggregation.SALAD`
-# computes Eq. (4) for a batch as one product $F P^\top$. The toy matrix must give the same plan as
-# `sinkhorn_by_hand`; for SALAD we reuse the heads of a `vpr_nb` SALAD layer built with SALAD's **default
-# (paper) sizes**, and the derivation must give the same 8448-D descriptor:
+# `vpr_nb.aggregation.sinkhorn` runs Eqs. (2)-(3) on a batch, and `vpr_nb.aggregation.SALAD` computes
+# Eq. (4) as one product $F P^\top$. Both must match the derivation, at the **paper's sizes** (8448-D).
+# Its state dict matches the published DINOv2-SALAD aggregator, whose weights load by name:
 
 # %%
 for iters in (1, 3, 100):
@@ -300,21 +279,17 @@ except ValueError as err:
 # %% [markdown]
 # ## The course backbone, and SALAD at initialisation
 #
-# SALAD fine-tunes DINOv2's last 4 of 12 blocks; here the backbone is the **course backbone**
-# (`vpr_nb.pretrain.course_backbone`: the course's `SmallCNN`, pretrained with the Multi-Similarity loss and
-# GeM plus a local contrastive term, on synthetic worlds with seeds $\ge 100$, never the seed-0 world used
-# below) with its **last block trainable**. As in notebook 04 (and the course recipe) SALAD reads the
-# backbone's output, **after its final ReLU**, where notebook 04 measured NetVLAD's start to be better. It gives
-# $n = 8 \cdot 12 = 96$ local features of 128 channels and a global token (a linear layer on the mean
-# feature, the analogue of DINOv2's CLS token). SALAD is scaled down to $m = 16$ clusters of $l = 32$
-# dimensions plus a 64-D token ($n = 96 > m$): a 576-D descriptor, its MLP heads 64 wide (the paper:
-# 64 × 128 + 256 = 8448-D, heads 512 wide, for 768 channels).
+# SALAD fine-tunes DINOv2's last blocks. Here the **course backbone** (`vpr_nb.pretrain.course_backbone`)
+# trains its **last block**. SALAD reads its output after the final ReLU: 96 local features of 128 channels,
+# and a global token from the mean feature. SALAD is scaled down to $m = 16$ clusters of $l = 32$ dimensions
+# plus a 64-D token: 576-D.
 #
-# Before training anything, look at what SALAD's heads receive and give: the mean cosine between two
-# local features of the backbone, between two projected features $f_i$ (Eq. 4's summands), between two
-# cluster vectors $V_{\cdot k}$ of an image (1 = all clusters identical), the entropy of each feature's
-# mass over the $m$ clusters (divided by $\log m$: 1 = uniform, 0 = one cluster), the dustbin's share of the
-# plan, and the test Recall@1 of the untrained model.
+# Before any training we measure, on 64 test queries:
+#
+# * **f cosine**: the mean cosine between two projected features $f_i$ of an image;
+# * **cluster cosine**: the same for two cluster vectors $V_{\cdot k}$ (1 = all identical);
+# * **entropy / log m**: of each feature's mass over the clusters (1 = uniform);
+# * the dustbin's share, and the untrained test Recall@1.
 
 # %%
 def course(trainable_blocks):
@@ -400,50 +375,31 @@ for name, r in init_stats.items():
     print(f"{name:42s}" + "".join(f"{r[c]:17.3f}" for c in cols))
 
 # %% [markdown]
-# **Why SALAD starts collapsed here.** The recipe reads the backbone after its last ReLU, so every local
-# feature is non-negative and all of them share a component (their mean pairwise cosine above). SALAD has no
-# centroid residual (Eq. 4 sums the projected features themselves, NetVLAD's Eq. 4 sums $x_i - c_k$), so with
-# the default initialisation the shared component dominates every projected feature $f_i$ ("f cosine" close
-# to 1 in the table), every cluster vector $V_{\cdot k}$ is nearly the same average, and all images get
-# nearly the same descriptor. NetVLAD escapes this through its data-dependent initialisation (k-means
-# centroids, notebook 04). The analogue for SALAD, used in the row "SALAD" below, changes no architecture and
-# no state-dict entry: the first $1\times1$ convolution of the score and feature heads is rescaled so that it
-# sees each channel standardised with the training-database statistics (`standardise_inputs`). It spreads
-# the projected features (f cosine about half) and starts a little higher in R@1; the score head is still
-# random, so both starts spread each feature's mass almost evenly over the clusters (entropy close to
-# $\log m$) and their cluster vectors stay nearly equal until training. DINOv2's features need no such step
-# in the paper: they come out of a LayerNorm, signed and far more diverse. The row "SALAD, paper init" trains
-# the published initialisation with the same recipe, to measure what the step is worth after training.
+# **Why SALAD starts collapsed.** After the ReLU all local features are non-negative and share a component
+# (mean cosine 0.243). SALAD sums the projected features themselves, with no centroid residual. So with the
+# published initialisation the shared component dominates every $f_i$ (f cosine close to 1). All cluster
+# vectors and all descriptors then look alike. NetVLAD escapes through its k-means start.
 #
-# The last row of the table above is the published initialisation on a **randomly initialised** SmallCNN,
-# without any pretraining: its cluster vectors are just as identical (cluster cosine 1.000), the same
-# symmetric start.
+# SALAD's analogue, `standardise_inputs`, rescales the first layer of the score and feature heads. They then
+# see each channel standardised with training statistics; the state dict keeps its keys. This halves the
+# f cosine. DINOv2's features, signed and diverse after a LayerNorm, need no such step.
+# The row "SALAD" below starts this way; "SALAD, paper init" trains the published start. On a random
+# SmallCNN (last row) the published start is just as collapsed.
 
 # %% [markdown]
 # ## Experiment: GeM, NetVLAD and SALAD, at their usual sizes and at equal size
 #
-# Every row fine-tunes the course backbone's last block with the **course recipe** (`vpr_nb.recipe.RECIPE`,
-# as in notebook 03): weakly supervised triplets (16 queries, each with its best potential positive facing
-# the same way and the 5 hardest of 300 negatives, margin 0.1), Adam with StepLR, the starting weights as the
-# epoch-0 candidate, training until validation Recall@1 has not improved for 4 epochs (at most 24), the best
-# validation epoch tested once; validation is the recipe's validation world (803 queries). Seeds 0–4 are
-# paired: for one seed every row draws the same mining randomness. This notebook deviates from the recipe in
-# one place: every row trains at the recipe's lr $10^{-3}$ (notebook 04's) instead of choosing its own from
-# the grid, which would triple the cost of eight rows.
+# Every row fine-tunes the last block with the **course recipe** (`vpr_nb.recipe.RECIPE`, notebook 03) at
+# lr $10^{-3}$. A run stops 4 epochs after its best validation Recall@1; that epoch is tested. Seeds 0–4 are
+# paired.
 #
-# * **Usual sizes**: GeM (128-D), NetVLAD-16 (16 × 128 = 2048-D), SALAD (16 × 32 + 64 = 576-D).
-# * **Equal size, 512-D**: NetVLAD-4 (4 × 128) and SALAD-4 (4 clusters of 96 dimensions + a 128-D token),
-#   the same number of clusters and the same descriptor length, so what differs is the assignment (softmax of
-#   Eq. 3 of notebook 04 vs optimal transport with a dustbin) and what is summed (residuals vs projected
-#   features). GeM's descriptor is its channel count, 128; a projection to 512 would add no rank, so GeM
-#   stays beside them at 128-D.
-# * **Ablations of SALAD**: the published initialisation (no standardised inputs), and the paper's
-#   Multi-Similarity loss on random P × K place batches (32 places × 4 images, 30 batches an epoch: as many
-#   images as the triplet epoch; a "place" is 3 street spots × a view-direction quadrant, from geotags),
-#   for SALAD and for GeM. The paper also uses AdamW and a linear decay; here the optimiser stays the recipe's.
+# * **Usual sizes**: GeM (128-D), NetVLAD-16 (2048-D), SALAD (576-D).
+# * **Equal size, 512-D**: NetVLAD-4 and SALAD-4 (4 clusters each), so only the assignment and what is
+#   summed differ.
+# * **Ablations**: SALAD's published initialisation, and the paper's Multi-Similarity loss on P × K place
+#   batches (also for GeM).
 #
-# The CI profile trains GeM, NetVLAD and SALAD for one epoch on one seed (a smoke test; the notebook must run
-# in about a minute on two cores); the committed reproduce profile below trains every row on 5 seeds.
+# The CI profile is a one-epoch, one-seed smoke test; the committed reproduce profile uses 5 seeds.
 
 # %%
 start0 = build_start(Method("SALAD", "salad"), train_split, RECIPE, seed=0)       # the recipe's SALAD start
@@ -530,10 +486,8 @@ print(f"(the committed runs took {res['seconds'] / 60:.1f} min wall time in 2 pr
 
 
 # %% [markdown]
-# **Verdicts** (paired by seed, a difference counts only beyond 2 standard errors; an untrained reference is
-# one number, repeated for every seed). First the controls: does each fine-tune beat its own starting point
-# (the same model before any step, "start R@1" above)? A comparison against a fine-tuned row is made only
-# when that baseline's control passes (`vpr_nb.results.gated_verdict`).
+# **Verdicts.** A paired difference counts only beyond 2 standard errors. First the controls: does each
+# fine-tune beat its own start? A comparison against a fine-tuned row needs that row's control to pass.
 
 # %%
 def r1(name):
@@ -579,16 +533,14 @@ for m in rows:
     print(f"{m:18s}: best epoch {rows[m]['best epoch']}, epochs run {rows[m]['epochs run']}")
 
 # %% [markdown]
-# **Figure 3.** Validation Recall@1 per epoch of the fine-tuned rows of the reproduce profile, averaged over
-# the seeds still training at that epoch (each run stops 4 epochs after its best; dashed: the equal-size rows
-# and the Multi-Similarity row). Below: each row's selected epoch per seed.
+# **Figure 3.** Validation Recall@1 per epoch (reproduce profile), averaged over the seeds still training.
+# Dashed: the equal-size and Multi-Similarity rows. Below: the selected epoch per seed.
 
 # %% [markdown]
 # ## Is the trained plan non-uniform?
 #
-# The same plan statistics as above, before and after training, on the 64 test queries: for the live run
-# and, over 5 seeds, for the committed ones. A plan that stays uniform keeps the cluster vectors equal
-# (cosine 1) and each feature's mass spread evenly over the clusters (entropy / log m = 1).
+# The same plan statistics, before and after training. A uniform plan keeps cluster cosine and entropy / log m
+# at 1.
 
 # %%
 STATS = ("f cosine", "cluster cosine", "entropy / log m", "dustbin share")
@@ -614,11 +566,8 @@ stats_table(f"committed reproduce profile (mean ± std over seeds {SEEDS})", row
 # %% [markdown]
 # ## What the trained SALAD keeps and discards
 #
-# For three test queries and the trained SALAD of the committed reproduce profile (seed 0; its trained block
-# and SALAD layer are committed beside the results and loaded with their hash checked,
-# `vpr_nb.trained_weights`): the image, the dustbin's share of each of the 96
-# positions ($P_{m+1,i}$: 1 = discarded), the cluster that receives most of each position's mass, and the
-# entropy of each position's mass over the clusters (divided by $\log m$; 1 = spread evenly).
+# The committed trained SALAD (seed 0) on three test queries. Per position: the dustbin's share (1 =
+# discarded), the main cluster, and the entropy over clusters (divided by $\log m$).
 
 # %%
 salad_model = load_trained(committed, "salad-seed0", start0).eval()     # start0: the recipe's SALAD start, seed 0
@@ -650,9 +599,8 @@ print(f"largest entry of each cluster row of the plan, mean: {plans[:, :-1].amax
       f"main cluster: {plans[:, :-1].argmax(1).unique().numel()} of {m}")
 
 # %% [markdown]
-# **Figure 4.** The trained SALAD (committed reproduce profile, seed 0) on three test queries (left column): the share of each feature's
-# mass that goes to the dustbin, the cluster that receives most of it, and the entropy of its distribution
-# over the clusters divided by $\log m$ (0: one cluster, 1: uniform).
+# **Figure 4.** The trained SALAD on three test queries (left). Per position: the dustbin's share of its
+# mass, the cluster receiving most of it, and its entropy over clusters (0: one cluster, 1: uniform).
 
 # %%
 record("05_salad", {
@@ -670,14 +618,13 @@ record("05_salad", {
 # %% [markdown]
 # ## Why SALAD does not win here: a probe of the local features
 #
-# SALAD's premise is many *diverse* local features for the transport to share out among clusters. Two numbers
-# say how much diversity the course backbone gives (`vpr_nb.probes`): the **effective dimension** of its local
-# features (the directions $u = f / \lVert f \rVert$ of all features of all images, centred; with eigenvalues
-# $\lambda_k$ of their covariance, the participation ratio $(\sum_k \lambda_k)^2 / \sum_k \lambda_k^2$, Eq. (1)
-# of `vpr_nb.probes`: 128 for an isotropic cloud, 1 for a line) and the **within-image cosine** (the mean cosine
-# between two local features of one image, not centred: a component all of an image's features share raises it
-# towards 1). Then a sweep of the number of clusters of a frozen NetVLAD (k-means initialised, nothing trained):
-# how much does a finer assignment add over one pooled vector?
+# SALAD needs *diverse* local features to share out. `vpr_nb.probes` measures two things:
+#
+# * the **effective dimension**, $(\sum_k \lambda_k)^2 / \sum_k \lambda_k^2$ over the eigenvalues $\lambda_k$
+#   of the features' centred covariance (128: isotropic, 1: a line);
+# * the **within-image cosine** of two features of one image (a shared component pushes it towards 1).
+#
+# Then a frozen NetVLAD with more and more clusters: what does a finer assignment add?
 
 # %%
 with torch.no_grad():
@@ -713,24 +660,19 @@ for name, r in SWEEP.items():
     print(f"{name:20s}{r['dim']:6d}" + "".join(f"{r[f'R@{n}']:8.3f}" for n in NS))
 
 # %% [markdown]
-# The features are diverse: read after the ReLU (what SALAD and NetVLAD read), they span about 69 effective
-# dimensions of 128 (before the ReLU, where the pretraining's local term acts, about 49), and two features of
-# one image have mean cosine 0.29. Frozen, recall rises with the number of clusters, from NetVLAD-2 far below
-# GeM to NetVLAD-16 level with it (32 adds nothing): the features give an assignment something to sort, and
-# the trained NetVLAD-16 uses it (the committed table puts it first). So the features are not what holds
-# SALAD back. Its own rows show what does: its score head starts random (start R@1 about 0.42, where
-# NetVLAD's k-means start is at 0.75, "start R@1" column), and training leaves its plan close to uniform
-# (entropy / log m 0.99 → 0.96, cluster cosine 0.99 → 0.77 in the plan table): from the tiny city's few hundred
-# training queries the heads learn little assignment. SALAD's heads train on GSV-Cities' tens of thousands of places.
+# The features are diverse: about 69 effective dimensions of 128, and a within-image cosine of 0.29.
+# Frozen, recall rises with the clusters: NetVLAD-2 is far below GeM, NetVLAD-16 level with it. So the
+# features are not what holds SALAD back. Its score head starts random (start R@1 about 0.42, NetVLAD's
+# k-means start 0.75). Training leaves its plan close to uniform (entropy / log m 0.99 → 0.96, cluster cosine
+# 0.99 → 0.77). A tiny city gives the heads too few places to learn an assignment.
 
 # %% [markdown]
 # ## Graded exercise: Eq. (4) without intra-normalisation
 #
-# An ablation of the derivation above: instead of normalising each cluster column $V_{\cdot k}$, take the
-# **plan-weighted mean** of the features, which keeps each cluster's scale. Write `cluster_means(f, p)`: for
-# projected features `f` $[l, n]$ and a plan `p` $[m, n]$ (torch tensors, dustbin row already removed), the
-# $[l, m]$ matrix whose column $k$ is $\sum_i p_{ki} f_{\cdot i} / \sum_i p_{ki}$, in plain torch (no `vpr_nb`).
-# Grading runs only the notebook's import cells and your solution cell.
+# Instead of normalising each column $V_{\cdot k}$, take the **plan-weighted mean** of the features. Write
+# `cluster_means(f, p)` in plain torch. It takes features `f` $[l, n]$ and a plan `p` $[m, n]$ (dustbin row
+# removed). It returns the $[l, m]$ matrix with columns $\sum_i p_{ki} f_{\cdot i} / \sum_i p_{ki}$. Grading
+# runs only the import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-05-cluster-means", "locked": false, "schema_version": 3, "solution": true}
 def cluster_means(f, p):
@@ -783,11 +725,10 @@ check("cluster_means", [Case("SALAD's descriptor from the means, Eqs. (4)-(5)", 
 # %% [markdown]
 # ## Graded exercise: predict, then measure what the dustbin takes
 #
-# With the marginals of Eq. (3) every feature gives mass 1, every cluster receives mass 1 and the dustbin
-# the rest. The dustbin score $z$ is learned.
+# Under Eq. (3) each feature gives 1, each cluster receives 1 and the dustbin the rest.
 #
-# **Predict first:** once Sinkhorn has converged, as $z$ grows, does the total mass the dustbin takes
-# `"grow"`, `"shrink"`, or `"stay n - m"`? Replace the `raise` below by `DUSTBIN_AS_Z_GROWS = "..."` with one of
+# **Predict first:** once Sinkhorn has converged, as $z$ grows, does the dustbin's total mass `"grow"`,
+# `"shrink"`, or `"stay n - m"`? Replace the `raise` below by `DUSTBIN_AS_Z_GROWS = "..."` with one of
 # those three strings.
 
 # %% tags=["grade-deps:ex-05-dustbin-predict", "grade-deps:ex-05-dustbin-mass"]
@@ -808,11 +749,9 @@ check("DUSTBIN_AS_Z_GROWS", [Case("the dustbin's total mass at convergence as z 
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Then measure.** Write `dustbin_mass(scores, z, iters)` for a score matrix `scores` (numpy, $[m, n]$ with
-# $n > m$), a dustbin score `z` and a number of iterations: run `iters` iterations of Eq. (2) (a $u$ update,
-# then a $v$ update, from $u = v = 0$) on $\bar S = [S; z \mathbf 1^\top]$ with the marginals of Eq. (3), and
-# return the pair (mass received by the $m$ clusters, mass received by the dustbin) of the plan, as Python
-# floats, in numpy (no `vpr_nb`). Then try 1, 3 and 100 iterations at $z = -3$ and $z = 3$: does your
+# **Then measure.** Write `dustbin_mass(scores, z, iters)` in numpy. Run `iters` iterations of Eq. (2)
+# from $u = v = 0$ on $\bar S = [S; z \mathbf 1^\top]$ with the marginals of Eq. (3). Return (mass of the $m$
+# clusters, mass of the dustbin) as floats. Then try 1, 3 and 100 iterations at $z = -3$ and $z = 3$: does your
 # prediction need convergence, and how much does $z$ change the plan?
 
 # %% nbgrader={"grade": false, "grade_id": "ex-05-dustbin-mass", "locked": false, "schema_version": 3, "solution": true}
@@ -862,130 +801,80 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Iterations.** Train SALAD with 1 and with 10 Sinkhorn iterations (subclass `SALAD` and call
-#    `vpr_nb.aggregation.salad_aggregate(..., num_iters=k)`). Does the exact marginal matter for Recall?
-#    <details><summary>Hint</summary>Look first at the row-error curve above: how far from the marginals is
-#    the plan after 1 and after 10 iterations? Then train both on the same seeds as the SALAD row and compare
-#    them with <code>results.paired_verdict</code>, not one run each.</details>
-# 2. **No dustbin.** Set the dustbin score to $-\infty$ in `sinkhorn_by_hand` (and $a = [n/m, \dots]$ so the
-#    marginals stay feasible). What happens to the features of the sky and the road?
-#    <details><summary>Hint</summary>With the dustbin row at $-\infty$ it receives nothing, so every feature's
-#    unit of mass goes to some cluster. Plot the plan of a test image as the figure "what the trained SALAD
-#    keeps" does and look at where the positions that the dustbin took before now go.</details>
-# 3. **Temperature.** Sinkhorn here has regularisation 1 (Eq. 1). Multiply the toy scores by 10 and by 0.1:
-#    how does the plan change, and how many iterations does the row error need to reach $10^{-4}$?
-#    <details><summary>Hint</summary>Reuse the <code>row_err</code> computation with
-#    <code>10 * toy_scores</code> and <code>0.1 * toy_scores</code>; larger scores mean a weaker entropy term
-#    (a plan closer to a hard assignment), and convergence slows down.</details>
-# 4. **Token or clusters?** Retrain SALAD with `token_dim` tiny (e.g. 4) and with `cluster_dim` tiny: which
-#    part of the descriptor carries the retrieval performance here?
-#    <details><summary>Hint</summary><code>SALAD_SIZE</code> holds the layer's sizes: build the model with
-#    <code>{**SALAD_SIZE, "token_dim": 4}</code> (then <code>"cluster_dim"</code>), fold the standardisation
-#    as for the SALAD row, and train with the same recipe and seeds.</details>
-# 5. **Equal size, larger.** The table compares SALAD and NetVLAD at 512-D. Repeat at NetVLAD-16's 2048-D
-#    (SALAD with 16 clusters of 124 dimensions and a 64-D token is 2048-D): does the order change?
-#    <details><summary>Hint</summary><code>Method("SALAD-2048", "salad", aggregator_kwargs={"cluster_dim": 124})</code>,
-#    trained with <code>search_methods([...], train_split, val_split, RECIPE, SEEDS, lr=EXPERIMENT["lr"])</code>
-#    on the table's seeds, then <code>results.gated_verdict</code> against the NetVLAD row; remember that a
-#    larger descriptor also makes the triplet mining slower.</details>
-# 6. **Centre or scale?** `standardise_inputs` both centres and scales the features. Fold only the centring
-#    (`sd = 1`), then only the scaling (`mu = 0`), and compare the untrained plan statistics and one epoch of
-#    training. Which of the two removes the collapse?
-#    <details><summary>Hint</summary>Copy <code>standardise_inputs</code> and replace <code>sd</code> by ones
-#    (then <code>mu</code> by zeros) before the fold; <code>plan_stats(model)</code> prints the f cosine that
-#    tells a collapsed start (above 0.9) from a spread one (about 0.5).</details>
-# 7. **A data-driven start for the score head.** The probe section ties SALAD's place to its random score head.
-#    Initialise the score head's last layer from k-means centroids of the projected features (as
-#    `init_netvlad` does for NetVLAD) and train on the table's seeds: does SALAD's start R@1 rise towards
-#    NetVLAD's, and does its trained row?
-#    <details><summary>Hint</summary>Run the model's score head up to its last layer on the training database's
-#    features, cluster them with <code>vpr_nb.aggregation.kmeans_centroids</code>, and set the last layer's
-#    weights to the centroids (times a scale, as α in notebook 04's Eq. 6); compare with
-#    <code>results.gated_verdict</code> against the SALAD row.</details>
+# 1. **Iterations.** Train SALAD with 1 and with 10 Sinkhorn iterations (`salad_aggregate(..., num_iters=k)`).
+#    Does the exact marginal matter for Recall?
+#    <details><summary>Hint</summary>Check Figure 1's error curve, then compare paired seeds.</details>
+# 2. **No dustbin.** Set the dustbin score to $-\infty$ (and $a = [n/m, \dots]$). Where do sky and road go?
+#    <details><summary>Hint</summary>Plot a test image's plan as in Figure 4.</details>
+# 3. **Temperature.** Multiply the toy scores by 10 and by 0.1. How many iterations reach a row error of
+#    $10^{-4}$?
+#    <details><summary>Hint</summary>Reuse <code>row_err</code>; larger scores mean a harder plan.</details>
+# 4. **Token or clusters?** Retrain SALAD with a tiny `token_dim`, then a tiny `cluster_dim`. Which part
+#    carries the performance?
+#    <details><summary>Hint</summary>Override <code>SALAD_SIZE</code>; keep recipe and seeds.</details>
+# 5. **Equal size, larger.** Compare SALAD and NetVLAD-16 at 2048-D (`cluster_dim` 124). Does the order change?
+#    <details><summary>Hint</summary>Use <code>search_methods</code> and <code>results.gated_verdict</code>.</details>
+# 6. **Centre or scale?** Fold only the centring of `standardise_inputs`, then only the scaling. Which removes
+#    the collapse?
+#    <details><summary>Hint</summary>Set <code>sd</code> to ones, then <code>mu</code> to zeros; watch f cosine.</details>
+# 7. **A k-means score head.** Initialise the score head's last layer from k-means centroids, as
+#    `init_netvlad` does. Does SALAD's start R@1 rise?
+#    <details><summary>Hint</summary>Use <code>vpr_nb.aggregation.kmeans_centroids</code>.</details>
 #
 # ## Takeaways
 #
-# * Sinkhorn alternates row and column normalisations of $e^{S}$, in log space for stability (Eq. 2); the
-#   columns are exact after each iteration, the rows converge geometrically. The dustbin row lets the
-#   transport discard features; it needs more features than clusters ($n > m$). Its single learned score $z$
-#   cancels in the first row update: the plan does not change when $z$ does and $z$ gets a zero gradient
-#   (measured on the toy matrix), so the cluster scores alone decide what the dustbin takes.
-# * SALAD = MLP scores + optimal-transport assignment + MLP features, summed without centroid residuals,
-#   intra-normalised, concatenated with a global token (Eqs. 4-5); `vpr_nb.aggregation.SALAD` computes Eq. (4)
-#   as one batched product and loads the published DINOv2-SALAD aggregator weights by name.
-# * **With the published initialisation SALAD starts collapsed on the course backbone**, as on a
-#   from-scratch CNN (the untrained table): the projected features point the same way (f cosine 0.92), the
-#   cluster vectors are identical (cosine 1.000) and every image gets nearly the same descriptor. Without a
-#   residual to a centroid nothing removes the component all features share; NetVLAD's k-means start does it
-#   for NetVLAD. Standardising the features that SALAD's first layers see (folded into their weights; no
-#   architecture or state-dict change) spreads them (f cosine 0.46). On this backbone training escapes the
-#   collapse either way: the paper-init row ends with distinct cluster vectors (cosine 0.90) and level with
-#   the standardised one (+0.018 ± 0.021, within 2 SE), so the step is a better start, not a better end.
-# * **Under the course recipe every triplet-trained row beats its own start** (controls), each trained until
-#   validation stopped improving (best epochs 1-16, the table; no run reached the recipe's epoch cap).
-#   **At their usual sizes NetVLAD-16 (2048-D) leads, GeM (128-D) is second and SALAD (576-D) third**:
-#   NetVLAD − GeM = +0.041 ± 0.006, SALAD − GeM = −0.052 ± 0.015, SALAD − NetVLAD = −0.093 ± 0.019.
+# * Sinkhorn alternates row and column normalisations in log space (Eq. 2). The dustbin discards features
+#   and needs $n > m$. Its single score $z$ cancels, so the cluster scores alone decide what it takes.
+# * SALAD sums projected features under the plan, without centroid residuals, and adds a global token
+#   (Eqs. 4-5).
+# * **With the published initialisation SALAD starts collapsed here**: f cosine 0.92, cluster cosine 1.000.
+#   Standardising its inputs spreads the features (f cosine 0.46). Training escapes either way: the
+#   paper-init row ends level (+0.018 ± 0.021, within 2 SE).
+# * **At their usual sizes NetVLAD-16 leads, GeM is second and SALAD third**: NetVLAD − GeM = +0.041 ± 0.006,
+#   SALAD − GeM = −0.052 ± 0.015. Every triplet-trained row beats its start.
 #   NetVLAD above GeM is the literature's order; SALAD's place is not.
-# * **At equal size the assignment matters, in NetVLAD's favour**: NetVLAD-4 beats SALAD-4 (512-D, 4 clusters
-#   each; −0.038 ± 0.010) and is level with GeM-128 (within 2 SE). Size helps NetVLAD (16 clusters over 4:
-#   +0.052 ± 0.013) but not SALAD (576-D with 16 clusters vs 512-D with 4: within 2 SE).
-# * **The local features are diverse, SALAD's learned assignment is not** (probe and plan table): after the
-#   ReLU the features span about 69 effective dimensions with a within-image cosine of 0.29, and a frozen
-#   NetVLAD gains from 2 to 16 clusters (0.657 → 0.758). SALAD's score head starts random (start R@1 0.42 vs
-#   NetVLAD's k-means start 0.75) and its trained plan stays near uniform (entropy 0.96 of $\log m$, cluster
-#   cosine 0.77). The paper's heads train on DINOv2 features over GSV-Cities' tens of thousands of places,
-#   not on the few hundred training queries of a tiny procedural city.
-# * The paper's loss and batches: the Multi-Similarity loss on random P × K place batches trains SALAD level
-#   with hard-negative triplets (+0.016 ± 0.022, within 2 SE) and sharpens its plan the most (entropy 0.86,
-#   cluster cosine 0.51), but never moves GeM from its start (best epoch 0 on every seed; its control fails,
-#   so the GeM comparison is inconclusive). Random places are mostly easy negatives here, and "places" have to
-#   be built from geotags.
-# * The live CI numbers come from one epoch on one seed: a smoke test. Compare methods with the committed
-#   tables and their verdicts.
+# * **At equal size NetVLAD-4 beats SALAD-4** (−0.038 ± 0.010): the assignment matters. More clusters help
+#   NetVLAD (+0.052 ± 0.013) but not SALAD (within 2 SE).
+# * **The features are diverse, SALAD's learned plan is not.** A frozen NetVLAD gains from 2 to 16 clusters
+#   (0.657 → 0.758). SALAD's random score head starts at R@1 0.42, and its trained plan stays near uniform
+#   (entropy 0.96 of $\log m$).
+# * The Multi-Similarity loss trains SALAD level with triplets and sharpens its plan most (entropy 0.86). It
+#   never moves GeM from its start (best epoch 0).
+# * The live CI numbers are a smoke test; compare methods with the committed tables.
 
 # %% [markdown]
 # ## Self-check
 #
 # 1. After one Sinkhorn iteration, which marginals of Eq. (3) hold exactly, and which only approximately?
-#    <details><summary>Answer</summary>The column sums (what each feature gives) hold exactly after every $v$
-#    update; the row sums (what each cluster and the dustbin receive) converge geometrically, and after SALAD's
-#    3 iterations they are close but not exact.</details>
+#    <details><summary>Answer</summary>The column sums hold after every $v$ update. The row sums converge
+#    geometrically: after 3 iterations they are close, not exact.</details>
 # 2. Why does the dustbin need more features than clusters, $n > m$?
-#    <details><summary>Answer</summary>Each cluster must receive mass 1 and each feature gives mass 1, so the
-#    dustbin receives $n - m$: with $n \le m$ that is zero or negative and the marginals are infeasible (the
-#    library refuses a 64-feature map for 64 clusters).</details>
-# 3. Why does SALAD with the published initialisation start collapsed on the course backbone, and what removes it?
-#    <details><summary>Answer</summary>The local features (after the ReLU, non-negative) share a component, so
-#    every projected feature points nearly the same way and the cluster vectors are identical; there is no
-#    residual to a centroid to remove it. Standardising the features the first layers see (folded into their
-#    weights) spreads them; on this backbone training also escapes the collapse from the published start, and
-#    the two end level.</details>
+#    <details><summary>Answer</summary>Each feature gives 1 and each cluster receives 1, so the dustbin
+#    receives $n - m$. With $n \le m$ the marginals are infeasible.</details>
+# 3. Why does SALAD's published start collapse on the course backbone, and what removes it?
+#    <details><summary>Answer</summary>The non-negative features share a component and no centroid residual
+#    removes it, so the cluster vectors are identical. Standardising the inputs spreads them. Training from
+#    the published start also escapes, and both end level.</details>
 
 # %% [markdown]
 # ## References
 #
 # * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (DINOv2-SALAD).
 #   CVPR 2024. [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code:
-#   [github.com/serizba/salad](https://github.com/serizba/salad) (aggregator, training recipe, checkpoints).
+#   [github.com/serizba/salad](https://github.com/serizba/salad).
 # * M. Cuturi. *Sinkhorn Distances: Lightspeed Computation of Optimal Transport.* NeurIPS 2013.
 #   [arXiv:1306.0895](https://arxiv.org/abs/1306.0895).
 # * P.-E. Sarlin, D. DeTone, T. Malisiewicz, A. Rabinovich. *SuperGlue: Learning Feature Matching with Graph
-#   Neural Networks* (log-space Sinkhorn with a dustbin). CVPR 2020. [arXiv:1911.11763](https://arxiv.org/abs/1911.11763);
-#   code: [github.com/magicleap/SuperGluePretrainedNetwork](https://github.com/magicleap/SuperGluePretrainedNetwork).
+#   Neural Networks* (log-space Sinkhorn with a dustbin). CVPR 2020. [arXiv:1911.11763](https://arxiv.org/abs/1911.11763).
 # * M. Oquab et al. *DINOv2: Learning Robust Visual Features without Supervision.* TMLR 2024.
-#   [arXiv:2304.07193](https://arxiv.org/abs/2304.07193); code:
-#   [github.com/facebookresearch/dinov2](https://github.com/facebookresearch/dinov2).
+#   [arXiv:2304.07193](https://arxiv.org/abs/2304.07193).
 # * R. Arandjelović, P. Gronát, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
-#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247); code:
-#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247).
 # * F. Radenović, G. Tolias, O. Chum. *Fine-tuning CNN image retrieval with no human annotation* (GeM).
-#   TPAMI 2018. [arXiv:1711.02512](https://arxiv.org/abs/1711.02512); code:
-#   [github.com/filipradenovic/cnnimageretrieval-pytorch](https://github.com/filipradenovic/cnnimageretrieval-pytorch).
+#   TPAMI 2018. [arXiv:1711.02512](https://arxiv.org/abs/1711.02512).
 # * X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott. *Multi-Similarity Loss with General Pair Weighting for Deep
-#   Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627); code:
-#   [github.com/KevinMusgrave/pytorch-metric-learning](https://github.com/KevinMusgrave/pytorch-metric-learning).
+#   Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627).
 # * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition*
-#   (P places × K images batches). Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239); code:
-#   [github.com/amaralibey/gsv-cities](https://github.com/amaralibey/gsv-cities).
+#   (P places × K images batches). Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239).
 # * I. Loshchilov, F. Hutter. *Decoupled Weight Decay Regularization* (AdamW). ICLR 2019.
 #   [arXiv:1711.05101](https://arxiv.org/abs/1711.05101).
