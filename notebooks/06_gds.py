@@ -18,22 +18,18 @@
 # %% [markdown]
 # # 06 · Geographic Distance Sensitivity: close, but not there
 #
-# **Aim.** CliqueMining (Izquierdo & Civera, ECCV 2024) starts from an observation: on densely sampled
-# routes (Nordland, MSLS) a good VPR model retrieves an image *near* the query, but not the *nearest* one,
-# because its descriptor distance hardly grows with geographic distance over the first tens of metres. The
-# paper calls this the **Geographic Distance Sensitivity (GDS)** and shows it as a plot (its Fig. 1). Here
-# you will
+# **Aim.** CliqueMining (Izquierdo & Civera, ECCV 2024) starts from an observation. On densely sampled
+# routes (Nordland, MSLS) a good VPR model retrieves an image *near* the query, but not the *nearest* one.
+# Its descriptor distance hardly grows over the first tens of metres. The paper calls this the
+# **Geographic Distance Sensitivity (GDS)** and plots it (its Fig. 1). Here you will
 #
-# * turn that plot into numbers: per geographic-distance bin, the mean and spread of the descriptor
-#   distance (`vpr_nb.gds.gds_profile`), and above all the **mis-ordering probability**, the chance that
-#   an image farther away looks more similar, and the **top-k order agreement**;
-# * see how the mis-ordering probability at 10 m caps Recall@1 when positives are a single frame wide, and
-#   why the **slope** of the profile, the obvious single number, is not comparable across descriptors;
-# * measure all of it on the dense `route` world (Nordland-like, frames 5 m apart, positives = ±1 frame) for
-#   raw pixels, the frozen course backbone and the course backbone **fine-tuned** two ways (the last block,
-#   as the papers fine-tune VGG16's conv5 or DINOv2's last blocks): with NetVLAD-style triplets whose
-#   negatives start 10 m away, and with the Multi-Similarity loss over 25 m places;
-# * pick a query with a widget and look at its top-k with their true distances.
+# * measure GDS (`vpr_nb.gds.gds_profile`): the descriptor distance per geographic-distance bin, the
+#   **mis-ordering probability** (the chance that a farther image looks more similar) and the **top-k order
+#   agreement**;
+# * see how mis-ordering at 10 m caps Recall@1, and why the profile's **slope** misleads;
+# * compare on the dense `route` world (frames 5 m apart, positives = ±1 frame): raw pixels, the frozen
+#   backbone and two **fine-tuned** versions (triplets; Multi-Similarity over 25 m places);
+# * explore a query's top-k and their true distances with a widget.
 
 # %% tags=["parameters", "grade-deps:ex-06-misorder-empirical"]
 PROFILE = "ci"  # "ci": 1 fine-tuning seed, 2 epochs (what CI checks); "reproduce": 5 seeds, lr search, full budget
@@ -85,64 +81,54 @@ print(f"profile {PROFILE}: fine-tuning seeds {RUN['seeds']}, at most {RUN['max_e
 #
 # Take every (query, database) pair $(q, i)$ whose geotags $g_q, g_i$ (UTM, metres) are at most $d_{\max}$
 # apart. Its **geographic distance** is $\delta_{qi} = \lVert g_q - g_i \rVert_2$ and its **descriptor
-# distance** is $D_{qi} = \lVert \bar f(q) - \bar f(i) \rVert_2 \in [0, 2]$ for L2-normalised descriptors.
-# Bin the pairs by geographic distance, $B_b = \{(q,i) : b w \le \delta_{qi} < (b+1) w\}$, and summarise each bin:
+# distance** is $D_{qi} = \lVert \bar f(q) - \bar f(i) \rVert_2 \in [0, 2]$ (L2-normalised descriptors).
+# Bin the pairs, $B_b = \{(q,i) : b w \le \delta_{qi} < (b+1) w\}$, and summarise each bin:
 #
 # $$\mu_b = \frac{1}{|B_b|} \sum_{(q,i) \in B_b} D_{qi}, \qquad \sigma_b^2 = \frac{1}{|B_b|} \sum_{(q,i) \in B_b} (D_{qi} - \mu_b)^2 . \tag{1}$$
 #
-# The paper's Fig. 1 draws $\mu_b$ with a band $\mu_b \pm \sigma_b$ against the bin centre $c_b$. The obvious
-# single number is the **GDS slope**, the weighted least-squares line through the bin means over a
-# small-distance range $c_b \in [0, 30]$ m, with weights $n_b = |B_b|$:
+# The paper's Fig. 1 plots $\mu_b \pm \sigma_b$ against the bin centre $c_b$. The obvious single number is the
+# **GDS slope**, a line fitted to the bin means for $c_b \in [0, 30]$ m with weights $n_b = |B_b|$:
 #
 # $$(s, a) = \arg\min_{s, a} \sum_b n_b \,(\mu_b - a - s\, c_b)^2 , \qquad s = \frac{\sum_b n_b (c_b - \bar c)(\mu_b - \bar\mu)}{\sum_b n_b (c_b - \bar c)^2} . \tag{2}$$
 #
-# **Mis-ordering.** Retrieval only *ranks*, so what matters is whether a nearer image gets the smaller
-# distance. For two geographic distances $d_1 < d_2$ let $D_1, D_2$ be descriptor distances of pairs from
-# their bins. The probability that the farther image is ranked first is $p(d_1, d_2) = P(D_2 < D_1)$.
-# Modelling each bin as a Gaussian $\mathcal N(\mu_b, \sigma_b^2)$,
+# **Mis-ordering.** Retrieval only *ranks*: what matters is whether a nearer image gets the smaller
+# distance. For $d_1 < d_2$, the farther image is ranked first with probability $p(d_1, d_2) = P(D_2 < D_1)$,
+# with $D_1, D_2$ drawn from the two bins. With Gaussian bins $\mathcal N(\mu_b, \sigma_b^2)$,
 #
 # $$p(d_1, d_2) \approx \Phi\!\left(\frac{\mu_1 - \mu_2}{\sqrt{\sigma_1^2 + \sigma_2^2}}\right), \tag{3}$$
 #
-# and empirically $p = \frac{1}{n_1 n_2} \sum_{x \in B_1} \sum_{y \in B_2} \big([y < x] + \tfrac12 [y = x]\big)$. Eq. (3) says
-# that what matters is the gap between means *relative to the spread*.
+# and empirically $p = \frac{1}{n_1 n_2} \sum_{x \in B_1} \sum_{y \in B_2} \big([y < x] + \tfrac12 [y = x]\big)$.
+# What matters is the gap between means *relative to the spread*.
 #
-# **The slope is not scale-free.** Multiply every descriptor distance by a constant (or use a descriptor
-# whose distances all live in a narrow range, like raw pixels) and $s$ changes while every ranking, and
-# so $p$, stays the same. *If* the profile were a straight line with one spread $\bar\sigma$ for the bins in
-# the fit range ($\bar\sigma^2 = \sum_b n_b \sigma_b^2 / \sum_b n_b$), Eq. (3) for two distances $\Delta$ apart
-# would become
+# **The slope is not scale-free.** Scaling every descriptor distance changes $s$ but no ranking, so no $p$.
+# *If* the profile were a line with one spread $\bar\sigma$ in the fit range
+# ($\bar\sigma^2 = \sum_b n_b \sigma_b^2 / \sum_b n_b$), Eq. (3) for two distances $\Delta$ apart would become
 #
 # $$p(d, d + \Delta) \approx \Phi\!\left(-\frac{s\,\Delta}{\sqrt 2\,\bar\sigma}\right), \tag{4}$$
 #
-# so the scale-free number would be the **standardised gap** $s\,\Delta / \bar\sigma$ (here per $\Delta = 10$ m),
-# not $s$. Real profiles are curved (below: steepest in the first metres, and for raw pixels flat beyond
-# 10 m), so even the standardised line misjudges the distances that matter. This notebook therefore leads
-# with $p$ at the small distances and the top-k order agreement, and reports the slope second.
+# so the scale-free number would be the **standardised gap** $s\,\Delta / \bar\sigma$ (here $\Delta = 10$ m).
+# Real profiles are curved, so even this line misjudges small distances. We therefore lead with $p$ and
+# the top-k order agreement.
 #
 # **Why it caps Recall@1 on dense data.** On the route a query's positives are the frames $0$ and $\pm1$
-# apart ($\le 5$ m) and the frames $\pm 2$ apart (10 m) are already negatives. Ignoring everything but the
-# best positive (at 0 m) and the two nearest negatives (10 m, one on each side), the query is solved at
-# rank 1 only if both negatives look less similar than that positive, so
+# away ($\le 5$ m); the frames $\pm 2$ away (10 m) are negatives. Keep only the 0 m positive and the two
+# 10 m negatives. The query is solved at rank 1 only if both negatives look less similar:
 #
 # $$\text{R@1} \lesssim \big(1 - p(0, 10)\big)^{2} \tag{5}$$
 #
-# (treating the two comparisons as independent; more negatives only lower the bound, positives at 5 m raise
-# it a little). With $p(0, 10) = 0.4$ the cap is $0.36$ however good the descriptor is at recognising the
-# *area*: the model retrieves images that are close, but not there.
+# (treating the two comparisons as independent). With $p(0, 10) = 0.4$ the cap is $0.36$, however well the
+# descriptor recognises the *area*: close, but not there.
 #
-# **Pairs must share content.** On the route every camera faces along the track, so every (query,
-# database) pair within 55 m looks at overlapping scenery. In the `city` world each spot is photographed
-# in 4 headings, and two images at one spot facing different ways share no content: their descriptor
-# distance says nothing about geographic sensitivity. A city profile must use **heading-consistent pairs**
-# (cameras facing the same way; exercise 4).
+# **Pairs must share content.** On the route every camera faces along the track. In the `city` world each
+# spot is photographed in 4 headings; images there facing different ways share no content. A city profile
+# needs **heading-consistent pairs** (exercise 4).
 
 # %% [markdown]
 # ## The data
 #
-# The tiny `route` world: a summer database and winter queries every 5 m along a track; a query is
-# geotagged at its frame, so the (query, database) distances are multiples of the frame spacing and the bins
-# of width $0.96 \times 5$ m hold one frame offset each. Fine-tuning uses the `train` split (selection on
-# `val`), the profiles the `test` split.
+# The tiny `route` world: a summer database and winter queries every 5 m along a track. Pair distances are
+# multiples of 5 m, so bins of width $0.96 \times 5$ m hold one frame offset each. Fine-tuning uses `train`
+# (selection on `val`); the profiles use `test`.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -169,8 +155,7 @@ desc["frozen backbone"] = {"db": compute_descriptors(frozen, te.db_images), "q":
 # %% [markdown]
 # ## Build it: Eqs. (1)–(3) in numpy
 #
-# On the small test split all pairs fit in a dense matrix, so the profile is a few lines of numpy. We build
-# it for the frozen course backbone.
+# On the small test split all pairs fit in a dense matrix: the frozen backbone's profile in a few lines of numpy.
 
 # %%
 def gds_by_hand(db, q, db_utm, q_utm, width, nbins, fit):
@@ -198,9 +183,9 @@ print(f"frozen backbone: p(0 m, 10 m) = {p_mis_by_hand(mu, sd, 0, 2):.3f}, slope
 # %% [markdown]
 # ## Use `vpr_nb`: the same profile from the library
 #
-# `vpr_nb.gds.gds_profile` computes Eqs. (1)–(2) with a k-d tree range search instead and never forms an
-# $N \times N$ matrix (100k images take a few seconds, see `bench/bench_gds.py`);
-# `vpr_nb.gds.misordering_probability` gives Eq. (3). Same descriptors, same numbers as the derivation above:
+# `vpr_nb.gds.gds_profile` computes Eqs. (1)–(2) with a k-d tree range search, never forming an
+# $N \times N$ matrix (`bench/bench_gds.py`). `vpr_nb.gds.misordering_probability` gives Eq. (3). Same
+# numbers as above:
 
 # %%
 def profile_of(d):
@@ -217,44 +202,34 @@ gap = max(np.abs(mu - prof_f.mean).max(), np.abs(sd - prof_f.std).max(),
 print(f"counts, means, stds and p(0 m, 10 m): by hand = vpr_nb to 1e-5: {bool(gap < 1e-5)}")
 
 # %% [markdown]
-# The profile of the frozen backbone as a picture (`vpr_nb.plots.plot_gds_misordering`): Eq. (1) as a curve with
-# its band, and Eq. (3) for $d_1 = 0$ m, $d_2 = 10$ m, the positive and the nearest negatives on the route.
+# The frozen backbone's profile as a picture (`vpr_nb.plots.plot_gds_misordering`), with Eq. (3) for the
+# 0 m positive and the 10 m negatives.
 
 # %%
 plots.plot_gds_misordering(prof_f, 0.0, 10.0, label="frozen backbone")
 plt.show()
 
 # %% [markdown]
-# **Figure 1.** The GDS profile of the frozen course backbone on the route test split. Left: the mean descriptor
-# distance $\mu_b$ of each 4.8 m bin (Eq. 1) with its band $\mu_b \pm \sigma_b$; it climbs over the first
-# 15 m and is flat beyond, and the bins of $d_1 = 0$ m (blue) and $d_2 = 10$ m (red) are marked. Right: the
-# descriptor distances of the pairs of those two bins (histograms) and their Gaussians of Eq. (3); the shaded
-# overlap is where a 10 m pair can look more alike than a 0 m one, and the title gives the mis-ordering
-# probability $p(0, 10) = \Phi\big((\mu_1 - \mu_2) / \sqrt{\sigma_1^2 + \sigma_2^2}\big)$.
+# **Figure 1.** The frozen backbone on the route test split. Left: the bin means $\mu_b$ (Eq. 1), band
+# $\pm \sigma_b$, climbing over the first 15 m and flat beyond; 0 m is blue, 10 m red. Right: those two
+# bins' histograms and Gaussians. Their shaded overlap is where a 10 m pair looks more alike than a 0 m
+# one; the title gives $p(0, 10)$.
 
 # %% [markdown]
 # ## Experiment: raw pixels, frozen, fine-tuned
 #
 # Both arms follow the course recipe (`vpr_nb.recipe`): the course backbone with its last block trainable +
-# GeM, Adam, the starting weights as the epoch-0 candidate, training until validation Recall@1 has not
-# improved for 4 epochs, and each arm's learning rate chosen on validation from the recipe's grid (the mean
-# over the first 3 seeds, the recipe's `search_seeds`: the route's validation split is too small to choose on
-# one; seeds 3 and 4 train at the chosen rate only). The two arms differ only in
-# their batches, and get the **same number of steps per epoch** (the one deviation from the recipe, set above):
+# GeM, Adam, early stopping on validation Recall@1, and a learning rate chosen on validation. They differ
+# only in their batches, with the **same number of steps per epoch**:
 #
-# * **triplets** (`TripletSource`, NetVLAD-style mining, margin 0.1, 16 queries per step): positives within
-#   the training radius, 5 hardest negatives among random candidates *beyond the 5 m positive radius*, i.e.
-#   frames from 10 m on. The loss sees exactly the comparison of Eq. (5): the positive must beat an image
-#   10 m away;
-# * **Multi-Similarity loss over places** (`PlaceBatchSource`, 32 places × 4 images, the GSV-Cities recipe and
-#   the baseline of notebook 07), with the route's places of 5 consecutive frames (25 m): every image of a
-#   place counts as a positive, so the loss asks images 20 m apart to look *alike*.
+# * **triplets** (`TripletSource`, NetVLAD-style, margin 0.1): the 5 hardest negatives lie beyond the 5 m
+#   positive radius, i.e. from 10 m on. The loss sees exactly Eq. (5): the positive must beat an image 10 m away;
+# * **Multi-Similarity loss over places** (`PlaceBatchSource`, 32 places × 4 images, as in GSV-Cities and
+#   notebook 07). A place is 5 frames (25 m), so the loss asks images 20 m apart to look *alike*.
 #
-# For each model the table gives, first, the mis-ordering probabilities (Eq. 3) and the top-5 order
-# agreement (`topk_order_agreement`: the fraction of retrieval pairs in the right geographic order,
-# 0.5 = random, and Kendall's $\tau$); then the slope (per 10 m) and the standardised gap of Eq. (4); then
-# the Eq. (5) cap and Recall@N. The live run below is the CI profile (one seed, 2 epochs at the recipe's
-# default lr); the committed reproduce profile (5 fine-tuning seeds, lr search, full budget) follows it.
+# Each table lists per model: $p$ (Eq. 3), the top-5 order agreement (`topk_order_agreement`: pairs in
+# geographic order, 0.5 = random; Kendall's $\tau$), the slope, the gap of Eq. (4), the cap of Eq. (5) and
+# Recall@N. First the live CI run (one seed, 2 epochs), then the committed run (5 seeds, lr search).
 
 # %%
 # NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
@@ -350,11 +325,9 @@ for name in (TRI, MS):
 
 
 # %% [markdown]
-# **Verdicts.** Raw pixels and the frozen backbone are deterministic (one number each), so the paired
-# difference of a fine-tuned model against them is the per-seed difference to a constant; a verdict is given
-# only when its mean exceeds 2 standard errors (lower $p$ is better, higher recall is better). First the
-# controls: does each arm beat its own starting point, the frozen backbone, on R@1? The comparison of the two
-# arms is made only when the baseline arm (MS) passes its control (`vpr_nb.results.control_gate`).
+# **Verdicts.** A verdict needs a mean per-seed difference above 2 standard errors. First the controls:
+# does each arm beat its start, the frozen backbone, on R@1? The arms are compared only if the baseline
+# (MS) passes (`vpr_nb.results.control_gate`).
 
 # %%
 def values(name, metric):
@@ -412,49 +385,31 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 2.** GDS on the route test split (live run): descriptor distance against geographic distance for
-# every model, mean ± 1 standard deviation per bin with the fit of Eq. (2) (left); the mis-ordering
-# probability $p(0, d_2)$ of Eq. (3) (middle); and $p(d_1, d_2)$ for every pair of distances of the
-# triplet-fine-tuned model (right; red: the farther image usually wins). In this live run the MS arm kept its
-# epoch-0 weights, the frozen backbone (its validation R@1 only fell, printed above the live table), so its
-# profile and curve are the frozen backbone's: the green MS line, drawn after the orange frozen one, hides it
-# in the left and middle panels.
+# **Figure 2.** GDS on the route test split (live run). Left: each model's profile, mean ± 1 std, with the
+# fit of Eq. (2). Middle: $p(0, d_2)$ of Eq. (3). Right: $p(d_1, d_2)$ for the triplet model (red: the
+# farther image usually wins). Here the MS arm kept its epoch-0 weights (its validation R@1 only fell), so
+# the green MS line hides the orange frozen one.
 
 # %% [markdown]
-# **Reading the numbers** (the committed reproduce-profile table, its controls and verdict lines, and the
-# printed curves; the live CI-profile table is one seed after 2 epochs at the recipe's default lr).
+# **Reading the numbers** (the committed table, controls, verdicts and printed curves).
 #
-# * *Equal budgets.* Both arms had the same budget (34 steps an epoch, at most 24 epochs, the same stopping
-#   rule) and their own learning rate chosen on validation (the printed validation R@1 per lr). The triplet
-#   arm chose 3e-3 and stopped improving after 4–10 epochs. The Multi-Similarity arm never beat its start: at
-#   every learning rate of the grid the epoch-0 candidate (the frozen backbone) won on every seed, and in the
-#   live run its validation R@1 falls epoch by epoch from the start's (printed above the live table). Its
-#   control fails, so the two arms are not compared (the gate's "inconclusive" line).
-# * *Mis-ordering first.* Fine-tuning with triplets whose negatives start 10 m away halves $p(0, 10)$ against
-#   the frozen backbone (0.043 → 0.022) and puts more of the top-5 in geographic order (verdict lines); R@1
-#   rises by about 11 points. $p(5, 10)$, a positive 5 m away against a negative 10 m away, stays far from 0.
-# * *Close, but not there: here, rarely.* With this route's content (a distinct roadside object every metre,
-#   the camera turned 45° to the road), the caps of Eq. (5) sit far above the measured R@1 for every model
-#   (triplets: cap 0.956, R@1 0.802), and the live model's wrong top-1s are mostly far from the query (the
-#   count and median distance above Figure 3): what bounds R@1 on this route is recognising the place under
-#   another season, not ordering neighbouring frames.
-# * *The batches decide.* A loss that treats images 20 m apart as one place asks them to look alike; on a
-#   route where 20 m changes the roadside objects in view, that hurts from the first epoch (the MS arm's
-#   validation curve). This is the gap CliqueMining (notebook 07) attacks by building batches of places that
-#   are near each other and look alike.
-# * *The slope is neither scale-free nor linear.* The slope is not invariant to a rescaling of distances,
-#   which leaves every ranking and so $p$ unchanged (the graded exercise and exercise 5). The printed bin
-#   means show the curvature: the raw-pixel distance rises from 0 to 5 m and then stays flat, the frozen
-#   backbone's rises up to 15 m. The straight-line prediction of Eq. (4) overestimates $p(0, 10)$ for every
-#   model (its row in the tables): 0.413 for raw pixels, which have 0.167, and 0.277 for the triplet model,
-#   which has 0.022 by Eq. (3) and 0.031 empirically. A single slope over 0–30 m, even standardised, is no
-#   ranking of descriptors at small distances.
+# * *Equal budgets.* Both arms had 34 steps an epoch and at most 24 epochs. The MS arm never beat its
+#   start at any learning rate, so its control fails and the arms are not compared.
+# * *Mis-ordering first.* Triplets halve $p(0, 10)$ against the frozen backbone (0.043 → 0.022), order more
+#   of the top-5, and add about 11 points of R@1. $p(5, 10)$ stays far from 0.
+# * *Close, but not there: here, rarely.* The caps of Eq. (5) sit far above every R@1 (triplets: 0.956 vs
+#   0.802), and most wrong top-1s are far away (printed above Figure 3).
+# * *The batches decide.* Asking images 20 m apart to look alike hurts where 20 m changes the view.
+#   CliqueMining (notebook 07) batches nearby places that look alike.
+# * *The slope is neither scale-free nor linear.* The bin means are curved: raw pixels flatten after 5 m,
+#   the frozen backbone after 15 m. The line of Eq. (4) overestimates $p(0, 10)$: 0.413 against 0.167 for
+#   raw pixels, 0.277 against 0.022 for triplets (0.031 empirically).
 
 # %% [markdown]
 # ## Pick a query
 #
-# `query_topk` (a pure function, tested in `tests/test_gds.py`) returns a query's top-k with descriptor and
-# true distances; the widget only calls it and draws the images.
+# `query_topk` (tested in `tests/test_gds.py`) returns a query's top-k with descriptor and true distances;
+# the widget only calls it and draws the images.
 
 # %%
 # NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
@@ -477,9 +432,8 @@ demo = int(close[0]) if len(close) else 0
 show_query(demo)
 
 # %% [markdown]
-# **Figure 3.** A query whose top-1 under the triplet-fine-tuned model lies within 20 m but is not a
-# positive: the query, then its top-5 database images with their true distances (the table above gives
-# their descriptor distances).
+# **Figure 3.** A query whose triplet-model top-1 is within 20 m but not a positive: the query, then its
+# top-5 with their true distances (descriptor distances in the table above).
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -494,9 +448,8 @@ print(f"The default state, drawn once more without the widget (query 0, k = 5, {
 show_query(0, k=5, model=order[0])
 
 # %% [markdown]
-# **Figure 4.** The query explorer: sliders for the query and k and a menu for the model redraw a query's
-# top-k in JupyterLab; the table and images printed under it are its default state (query 0, k = 5, raw
-# pixels), stored for readers without a kernel.
+# **Figure 4.** The query explorer: sliders and a model menu redraw a query's top-k in JupyterLab. Printed
+# below is its default state (query 0, k = 5, raw pixels), for readers without a kernel.
 
 # %%
 record("06_gds", {
@@ -510,12 +463,11 @@ record("06_gds", {
 # %% [markdown]
 # ## Graded exercise: the empirical mis-ordering probability
 #
-# Eq. (3) models each bin as a Gaussian. Without that assumption, the mis-ordering probability of two bins is
-# the fraction of sample pairs $(x_1, x_2)$, $x_1$ from the nearer bin and $x_2$ from the farther one, with
-# $x_2 < x_1$, ties counting one half. Write `misorder_empirical(x1, x2)` for two 1-D numpy arrays of
-# descriptor distances, returning a Python float, in numpy (no `vpr_nb`; the hidden tests use a few
-# thousand samples per bin, so an all-pairs matrix is fine). Grading runs only the notebook's import cells
-# and your solution cell.
+# Eq. (3) assumes Gaussian bins. Without it, the mis-ordering probability is the fraction of sample pairs
+# $(x_1, x_2)$ with $x_2 < x_1$, ties counting one half ($x_1$ from the nearer bin, $x_2$ from the farther).
+# Write `misorder_empirical(x1, x2)` for two 1-D numpy arrays, returning a Python float. Use numpy only
+# (no `vpr_nb`); an all-pairs matrix is fine for the hidden tests' few thousand samples. Grading runs only
+# the notebook's import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-06-misorder-empirical", "locked": false, "schema_version": 3, "solution": true}
 def misorder_empirical(x1, x2):
@@ -552,11 +504,11 @@ check("misorder_empirical", [
 # %% [markdown]
 # ## Graded exercise: predict, then compute the Recall@1 cap of a profile
 #
-# Eq. (5) caps Recall@1 on the route by the mis-ordering probability between the 0 m bin and the 10 m bin.
+# Eq. (5) caps Recall@1 on the route through the mis-ordering probability of the 0 m and 10 m bins.
 #
-# **Predict first:** descriptor B is descriptor A with every descriptor distance multiplied by 2 (so B's
-# slope of Eq. (2) is twice A's). Is B's cap of Eq. (5) `"higher"`, `"lower"` or `"the same"`? Replace the
-# `raise` below by `CAP_OF_B = "..."` with one of those three strings.
+# **Predict first:** descriptor B is descriptor A with every descriptor distance doubled (so B's slope,
+# Eq. (2), is twice A's). Is B's cap `"higher"`, `"lower"` or `"the same"`? Replace the `raise` below by
+# `CAP_OF_B = "..."` with one of those three strings.
 
 # %% tags=["grade-deps:ex-06-cap-predict", "grade-deps:ex-06-r1-cap"]
 import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
@@ -575,12 +527,11 @@ check("CAP_OF_B", [Case("the cap of Eq. (5) when every descriptor distance doubl
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Then compute it.** Write `r1_cap(mu, sd, b_pos, b_neg)` for a profile's bin means `mu` and standard
-# deviations `sd` (numpy arrays, Eq. (1)) and the bin indices of the positive and of the nearest negatives
-# (on the route: the bins at 0 m and 10 m): the cap $(1 - p)^2$ of Eq. (5) with $p$ from Eq. (3), as a Python
-# float, in numpy and `math` (no `vpr_nb`, no scipy; $\Phi(x) = \frac12\big(1 + \operatorname{erf}(x / \sqrt 2)\big)$).
-# Then compute it in a new cell for the profiles above, e.g. `r1_cap(prof_f.mean, prof_f.std, 0, 2)`, and set
-# it beside the measured R@1 of the tables.
+# **Then compute it.** Write `r1_cap(mu, sd, b_pos, b_neg)`: from a profile's bin means and standard
+# deviations (numpy arrays) and the bins of the positive and nearest negatives (route: 0 m, 10 m), return
+# the cap $(1 - p)^2$ of Eq. (5), $p$ from Eq. (3), as a Python float. Use numpy and `math` only (no `vpr_nb`, no scipy;
+# $\Phi(x) = \frac12\big(1 + \operatorname{erf}(x / \sqrt 2)\big)$). Then try
+# `r1_cap(prof_f.mean, prof_f.std, 0, 2)` in a new cell and compare it with the measured R@1.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-06-r1-cap", "locked": false, "schema_version": 3, "solution": true}
 def r1_cap(mu, sd, b_pos, b_neg):
@@ -614,87 +565,72 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Bin width.** Recompute a profile with `bin_width=2.5`. Why do every other bin empty out on the route,
-#    and why does the notebook use $0.96 \times$ the frame spacing?
-#    <details><summary>Hint</summary>On the route a query and a database image are always a whole number of
-#    frames apart, so the geographic distances are multiples of the frame spacing: list
-#    <code>np.unique(np.round(geo, 3))</code> for a few pairs and ask which bins they can fall in, and what a
-#    bin edge exactly on a multiple does with rounding errors.</details>
-# 2. **Gaussian vs empirical.** Compare `misordering_matrix(prof_t, grid, "gaussian")` with the `"empirical"`
-#    version. Where does the Gaussian approximation of Eq. (3) fail, and why (hint: skewness near 0 m)?
-#    <details><summary>Hint</summary>Plot the histogram of the descriptor distances in the 0 m bin next to the
-#    10 m bin (<code>keep_pairs=True</code> keeps them): distances cannot go below 0, so a bin with a small mean
-#    is skewed, and a Gaussian with the same mean and spread puts mass where there is none.</details>
-# 3. **Check Eq. (5).** For the fine-tuned model, count per query how many of the two 10 m negatives beat the
-#    0 m positive, and compare the fraction of queries with none to $(1 - p(0, 10))^2$.
-#    <details><summary>Hint</summary>For query $q$ at frame $i$ the 0 m image is database frame $i$ and the
-#    10 m negatives are frames $i \pm 2$ (when they exist): compare their descriptor distances to the query with
-#    the 0 m one. Your <code>r1_cap</code> gives the prediction to compare with.</details>
+# 1. **Bin width.** Recompute a profile with `bin_width=2.5`. Why does every other bin empty out? Why does
+#    the notebook use $0.96 \times$ the frame spacing?
+#    <details><summary>Hint</summary>Route pair distances are multiples of the frame spacing (list
+#    <code>np.unique(np.round(geo, 3))</code>). Which bins can they fall in? What does a bin edge exactly on
+#    a multiple do with rounding errors?</details>
+# 2. **Gaussian vs empirical.** Compare `misordering_matrix(prof_t, grid, "gaussian")` with the
+#    `"empirical"` version. Where does Eq. (3) fail, and why?
+#    <details><summary>Hint</summary>Skewness near 0 m: plot the 0 m and 10 m histograms
+#    (<code>keep_pairs=True</code>). Distances cannot go below 0.</details>
+# 3. **Check Eq. (5).** For the fine-tuned model, count the queries where neither 10 m negative beats the
+#    0 m positive. Compare their fraction with $(1 - p(0, 10))^2$.
+#    <details><summary>Hint</summary>For a query at frame $i$, the positive is database frame $i$ and the
+#    negatives are frames $i \pm 2$. Your <code>r1_cap</code> gives the prediction.</details>
 # 4. **City, heading-consistent pairs.** Profile the frozen backbone on the `city` world (`pos_radius` 25 m,
-#    `bin_width=5`). Keep only pairs whose cameras face the same way: bucket every heading into one of 4
-#    directions (`heading // 90`, as `vpr_nb.pretrain.place_labels` does) and add `1e6 * bucket` to the
-#    easting of the UTM passed to `gds_profile`, so that pairs of different buckets are never within
-#    `max_distance`. Compare with the profile over all pairs: what does mixing headings do to the bin at 0 m?
-#    <details><summary>Hint</summary><code>make_dataset("city", seed=0)</code>, then shift
-#    <code>utm[:, 0] + 1e6 * (heading // 90)</code> for both the database and the queries; at 0 m the mixed
-#    profile averages same-view pairs with pairs that share no content.</details>
-# 5. **Scale.** Multiply the raw-pixel descriptors by 10 (before the distance, without re-normalising) and
-#    recompute the slope and $p(0, 10)$. Which one changes, and why does Eq. (4) predict it?
-#    <details><summary>Hint</summary>Pass <code>10 * desc["raw pixels"]["db"]</code> and the same for the
-#    queries to <code>gds_profile</code>; write what happens to $\mu_b$, $\sigma_b$ and $s$ under the scaling,
-#    and put them into Eqs. (3) and (4).</details>
-# 6. **Pairs = "all".** Profile the database against itself (`pairs="all"`): same-condition pairs. How does
-#    the curve change compared with summer-vs-winter query-database pairs?
-#    <details><summary>Hint</summary>Call <code>gds_profile(db, db_utm, ..., pairs="all")</code> without query
-#    descriptors; the 0 m bin then holds each image paired with itself (distance 0) unless the function
-#    leaves those out: check how many pairs it has.</details>
+#    `bin_width=5`) with same-heading pairs only. Add `1e6 * (heading // 90)` to the easting passed to
+#    `gds_profile`. What does mixing headings do to the 0 m bin?
+#    <details><summary>Hint</summary>Use <code>make_dataset("city", seed=0)</code>; shift database and
+#    queries. At 0 m a mixed profile includes pairs that share no content.</details>
+# 5. **Scale.** Multiply the raw-pixel descriptors by 10 (no re-normalising). Which changes, the slope or
+#    $p(0, 10)$, and why does Eq. (4) predict it?
+#    <details><summary>Hint</summary>Pass <code>10 * desc["raw pixels"]["db"]</code> (and the queries) to
+#    <code>gds_profile</code>. How do $\mu_b$, $\sigma_b$ and $s$ scale? Put them into Eqs. (3) and
+#    (4).</details>
+# 6. **Pairs = "all".** Profile the database against itself (`pairs="all"`). How does the curve differ from
+#    summer-vs-winter pairs?
+#    <details><summary>Hint</summary>Call <code>gds_profile(db, db_utm, ..., pairs="all")</code>. Does the
+#    0 m bin hold each image paired with itself (distance 0)? Check its count.</details>
 #
 # ## Takeaways
 #
-# * GDS is measurable: bin pairs by geographic distance, Eq. (1). Lead with the mis-ordering probability at
-#   small distances, Eq. (3), and the top-k order agreement: retrieval only ranks, and these are what
-#   rankings depend on.
-# * The slope of Eq. (2) is not scale-free (a rescaling of the distances changes it and no ranking), and
-#   profiles are curved, so even the standardised straight line of Eq. (4) misjudges $p(0, 10)$ for every
-#   model (committed table: it predicts 0.413 for raw pixels, which have 0.167, and 0.277 for the triplet
-#   model, which has 0.022).
-# * With positives one frame wide, $p(0, 10)$ caps R@1 near $(1-p)^2$, Eq. (5). On this route's content the
-#   caps are far above every model's R@1 (triplets: 0.956 vs 0.802) and most wrong top-1s are far away: the
-#   route tests recognising a place across seasons more than ordering neighbouring frames.
-# * What the loss compares decides the sensitivity: triplets with negatives 10 m away halve $p(0, 10)$ against
-#   the frozen backbone and add about 11 points of R@1; Multi-Similarity batches of 25 m places never improve on
-#   the start at any learning rate (their control fails, so the two arms are not ranked). CliqueMining
-#   (notebook 07) changes the batches to push on exactly this.
+# * GDS is measurable: bin pairs by geographic distance, Eq. (1). Retrieval only ranks, so lead with the
+#   mis-ordering probability at small distances, Eq. (3), and the top-k order agreement.
+# * The slope of Eq. (2) is not scale-free, and profiles are curved. Even the standardised line of Eq. (4)
+#   misjudges $p(0, 10)$: it predicts 0.413 for raw pixels (true 0.167) and 0.277 for triplets (true 0.022).
+# * With positives one frame wide, Eq. (5) caps R@1 near $(1-p)^2$. On this route the caps are far above
+#   R@1 (triplets: 0.956 vs 0.802): it tests recognising places across seasons more than ordering neighbours.
+# * What the loss compares decides the sensitivity. Triplets with 10 m negatives halve $p(0, 10)$ and add
+#   about 11 points of R@1 over the frozen backbone. Multi-Similarity over 25 m places never beats its
+#   start, so the arms are not ranked. CliqueMining (notebook 07) changes the batches instead.
 
 # %% [markdown]
 # ## Self-check
 #
 # 1. Why does this notebook lead with the mis-ordering probability rather than the GDS slope?
-#    <details><summary>Answer</summary>Retrieval only ranks: what decides a ranking is whether the nearer
-#    image gets the smaller distance, i.e. the gap between bin means relative to their spread (Eq. 3). A
-#    single slope over 0–30 m misses how curved the profiles are at the small distances that matter.</details>
+#    <details><summary>Answer</summary>Retrieval only ranks, and a ranking depends on the gap between bin
+#    means relative to their spread (Eq. 3). One slope misses the curvature at small distances.</details>
 # 2. On the route, why can Recall@1 stay low for a descriptor that recognises the area well?
-#    <details><summary>Answer</summary>The positives are only one frame wide and the frames 10 m away are
-#    already negatives; if those look about as similar as the right frame, the query fails at rank 1 even though
-#    its top-5 is in the right area: Eq. (5) caps R@1 near $(1 - p(0, 10))^2$. (On this notebook's route the
-#    caps are not what binds: compare each cap with its R@1.)</details>
+#    <details><summary>Answer</summary>Positives are one frame wide; frames 10 m away are negatives. If
+#    those look as similar, rank 1 fails though the top-5 is in the right area: Eq. (5) caps R@1 near
+#    $(1 - p(0, 10))^2$. (Here the caps do not bind: compare each with its R@1.)</details>
 # 3. Why does a profile on the city world need heading-consistent pairs?
-#    <details><summary>Answer</summary>Each spot is photographed in 4 headings; two images at the same spot
-#    facing different ways share no content, so their descriptor distance says nothing about geographic
-#    sensitivity and mixing them corrupts the small-distance bins.</details>
+#    <details><summary>Answer</summary>Each spot is photographed in 4 headings. Images at one spot facing
+#    different ways share no content, so mixing them corrupts the small-distance bins.</details>
 
 # %% [markdown]
 # ## References
 #
 # * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place
 #   Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422); code:
-#   [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining) (no code for the GDS analysis
-#   itself; `vpr_nb.gds` defines it, see its docstring).
+#   [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining) (no GDS code; `vpr_nb.gds`
+#   defines it).
 # * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (SALAD). CVPR 2024.
 #   [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code: [github.com/serizba/salad](https://github.com/serizba/salad).
 # * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
-#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247) (the triplet mining
-#   used for fine-tuning); code: [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247) (the triplet mining);
+#   code: [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
 # * X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott. *Multi-Similarity Loss with General Pair Weighting for
 #   Deep Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627); code:
 #   [github.com/MalongTech/research-ms-loss](https://github.com/MalongTech/research-ms-loss),
