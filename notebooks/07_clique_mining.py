@@ -18,23 +18,16 @@
 # %% [markdown]
 # # 07 · CliqueMining: batches of places that are close, alike, and apart
 #
-# **Aim.** On densely sampled routes (Nordland, MSLS) a trained model often retrieves a frame a few metres from
-# the query instead of the right one: it is *close, but not there* (the paper's Fig. 1; notebook 06 measures it
-# as the mis-ordering probability). CliqueMining (Izquierdo & Civera, ECCV 2024) changes only *which images go into a
-# training batch*: places of one city that look alike and lie just beyond the same-place threshold, so that the
-# Multi-Similarity loss has to separate them. You will
+# **Aim.** On dense routes (Nordland, MSLS) a trained model often retrieves a frame a few metres from the right
+# one: *close, but not there* (the paper's Fig. 1). CliqueMining
+# (Izquierdo & Civera, ECCV 2024) changes only *which images form a training batch*: look-alike places of one
+# city, just beyond the same-place threshold. You will
 #
-# * write the two ingredients (similarity-weighted group sampling within the anchor's city, and the geographic
-#   clique graph, here with a heading test) and check the invariants of `vpr_nb.samplers.clique_batches`;
-# * measure what the batches contain: how far apart and how alike their places are, against random-place
-#   batches with the *same* place definition (the GSV-Cities baseline);
-# * probe, before any training, how often a clique batch's nearest negative (the same-season frame a few
-#   metres ahead) already looks more alike than the positive;
-# * run the paper's comparison at course scale: the pretrained course backbone (last block trainable) + SALAD +
-#   MS loss, one loss per half-batch, trained on sparse city places only, on sparse + dense route places
-#   drawn at random, and on sparse + dense route *cliques*, on a `route` world with content near the camera (so
-#   that a few metres change the image); compare them by Recall@1 at ±1/±2/±4 frames, the **mis-ordering probability** at small
-#   distances and the top-k order (notebook 06), on 5 paired seeds, behind a control that must work.
+# * build group sampling by similarity and the geographic clique graph, and check `vpr_nb.samplers.clique_batches`;
+# * measure how close and alike a batch's places are, against random-place batches (the GSV-Cities baseline);
+# * probe how alike a clique batch's negatives are;
+# * train SALAD on both kinds of batches (5 paired seeds) and compare Recall@1 and the **mis-ordering
+#   probability**, behind a control.
 
 # %% tags=["parameters", "grade-deps:ex-07-close-pairs"]
 PROFILE = "ci"  # "ci": 1 seed, one epoch per arm (what CI checks); "reproduce": 5 paired seeds, until validation plateaus
@@ -69,59 +62,46 @@ print(f"profile {PROFILE}: the tuned route {ROUTE} and the city (seed 0)")
 # %% [markdown]
 # ## Theory
 #
-# The images carry geotags $g_i$, a city (region) and a place-group id (MSLS's `unique_cluster`). One clique
-# batch of $P$ places $\times$ $K$ images is built as in the authors' `create_dataset_part`:
+# Each image has a geotag $g_i$, a city and a group id (MSLS's `unique_cluster`). One clique batch of $P$
+# places $\times$ $K$ images is built as in the authors' `create_dataset_part`:
 #
-# 1. **City and anchor.** Draw a city with probability proportional to its number of groups (one not used yet
-#    in this batch) and an anchor group $a$ uniformly in it. Every group $j$ is described by the descriptor
-#    $x_j$ of one random image of it, computed **once, offline, with a pretrained model** (the paper: the
-#    GSV-Cities SALAD; here: the frozen course backbone + GeM).
-# 2. **Similar groups of the same city.** With $d_j = \lVert x_a - x_j \rVert_2$ over the groups $j$ of the
-#    anchor's city, draw $S = 15$ groups without replacement with
+# 1. **City and anchor.** Draw a city (weighted by its number of groups) and an anchor group $a$ in it. Each
+#    group $j$ has the descriptor $x_j$ of one random image, computed **once, by a pretrained model** (here:
+#    the frozen course backbone + GeM).
+# 2. **Similar groups.** With $d_j = \lVert x_a - x_j \rVert_2$ over the city's groups, draw $S = 15$ groups
+#    without replacement with
 #
-# $$P(j) \propto w_j = \max_k d_k - d_j \quad (j \ne a), \tag{1}$$
+# $$P(j) \propto w_j = \max_k d_k - d_j \quad (j \ne a). \tag{1}$$
 #
-#    so groups of that city that look like the anchor are likely (linear weights: the farthest never comes).
-# 3. **Graph.** Over all images of the $S + 1$ groups, join two images when they are closer than the
-#    same-place threshold $\tau$ (25 m in the paper) and, an option the paper does not need on MSLS, face the
-#    same way ($|\Delta\theta| \le \theta_{\max}$):
+# 3. **Graph.** Over the images of these $S + 1$ groups, join two images closer than the same-place threshold
+#    $\tau$ (25 m in the paper) and, as an option, facing the same way:
 #
 # $$E = \{(i, j) : \lVert g_i - g_j \rVert_2 < \tau,\ |\theta_i - \theta_j| \le \theta_{\max}\}. \tag{2}$$
 #
-# 4. **Places = cliques.** A clique $C$ with $|C| \ge K$ is a set of images pairwise closer than $\tau$; keep
-#    $K$ random members as one place, then delete them **and every image within $\tau$ of them**,
-#    $V \leftarrow V \setminus (C_K \cup N_\tau(C_K))$, so every later place is $\ge \tau$ from every chosen
-#    image. Repeat until $P$ places or no clique is left; then a new city.
+# 4. **Places = cliques.** A clique $C$ with $|C| \ge K$ gives one place of $K$ random members. Delete them
+#    **and every image within $\tau$ of them**, $V \leftarrow V \setminus (C_K \cup N_\tau(C_K))$, so later
+#    places stay $\ge \tau$ away. Repeat until $P$ places or no clique is left.
 #
-# The paper trains each step on **two halves**, 30 random GSV-Cities places and 30 clique places of MSLS, with
-# one **Multi-Similarity loss** per half (Wang et al., CVPR 2019, Eq. 6), summed; $S_{ij}$ is the cosine
-# similarity, $\mathcal P_i$/$\mathcal N_i$ the mined positives/negatives of anchor $i$, $\alpha=1$, $\beta=50$,
-# $\lambda=0$:
+# Each step has **two halves** (in the paper, 30 random GSV-Cities places and 30 MSLS clique places). Each half
+# has one **Multi-Similarity loss** (Wang et al., CVPR 2019, Eq. 6), with cosine similarities $S_{ij}$, mined
+# positives $\mathcal P_i$ and negatives $\mathcal N_i$, $\alpha=1$, $\beta=50$, $\lambda=0$:
 #
 # $$\mathcal L_{\text{half}} = \frac1{PK}\sum_i \Big[\frac1\alpha \log\big(1 + \sum_{p \in \mathcal P_i} e^{-\alpha (S_{ip} - \lambda)}\big) + \frac1\beta \log\big(1 + \sum_{n \in \mathcal N_i} e^{\beta (S_{in} - \lambda)}\big)\Big], \qquad \mathcal L = \mathcal L_{\text{random}} + \mathcal L_{\text{clique}}. \tag{3}$$
 #
-# The **baseline** replaces the clique half with a second random half (same places, same losses, same steps).
-# Both halves use the same place definition, and it must match the evaluation: a place must fit inside the
-# positive radius (on the route: 2 consecutive frames, $\le$ `pos_radius`), and on the city the images of a
-# place must face the same way (spot and heading), or the loss pulls together views that share no content.
+# The **baseline** makes both halves random. Both share one place definition, and it must match the
+# evaluation: a place fits inside the positive radius and, in the city, faces one way.
 #
-# **What should change.** The clique half puts images $\tau$ apart into the same loss as negatives. Notebook
-# 06's mis-ordering probability $p(d_1, d_2) = P(D(d_2) < D(d_1))$ at small distances should drop. On the tuned
-# route below, positives are 0 and 2.5 m away and the nearest negatives 5 m: $p(0, 10)$ compares the right frame
-# with a negative 10 m away, $p(5, 10)$ two negatives, i.e. the geographic order inside the top-k that GDS is
-# about. Recall@1 follows only if the model already finds the right *area*, so that its failures are near
-# misses.
+# **What should change.** Clique negatives lie just beyond $\tau$, so notebook 06's
+# $p(d_1, d_2) = P(D(d_2) < D(d_1))$ should drop at small distances. On the tuned route, positives lie 0 and
+# 2.5 m away and the nearest negatives 5 m. $p(0, 10)$ pits the right frame against a negative 10 m away;
+# $p(5, 10)$ pits two negatives. Recall@1 gains only if the failures are near misses.
 
 # %% [markdown]
 # ## The worlds: a route with content near the camera
 #
-# The default tiny `route` has frames 5 m apart, 10 facade types and **content near the camera** (notebook 00):
-# roadside objects every metre on each side (`roadside_spacing=1`) and a camera turned 45° to the side
-# (`camera_yaw=45`), so that the frame a few metres ahead is not the same image. For CliqueMining we tune it
-# through `make_dataset` overrides: more facade types and colour variation (fewer aliased far failures), frames
-# 2.5 m apart and places of 2 frames (neighbouring places are close). A failure is a **near miss**
-# when the top-1 image is not a positive but lies within 4 frames of the query; the table gives the share of
-# failures that are near misses.
+# The tiny `route` of notebook 00 has **content near the camera**, so the frame a few metres ahead is a
+# different image. We tune it: more facade types and colour variation, frames 2.5 m apart (not 5 m), places of
+# 2 frames. A **near miss** is a wrong top-1 within 4 frames; the table gives their share of the failures.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -157,17 +137,12 @@ print(te, tr, sep="\n")
 # %% [markdown]
 # ## Place definitions and the training sets
 #
-# Two groupings, as on MSLS: **places** (what a batch slot holds; the random half draws them) and
-# **clusters** (MSLS's `unique_cluster`, what Eq. (1) draws; a clique batch takes its places as cliques of the
-# images of 16 clusters).
+# **Places** fill the batch slots; **clusters** are what Eq. (1) draws.
 #
-# * **Route**: a place is 2 consecutive frames (database + query images, 4 images), so it fits inside the
-#   ±1-frame positive radius; the clique threshold is the positive radius, so a clique is exactly such a
-#   place. A cluster is 10 frames (25 m, the paper's same-place threshold). The whole route is one city.
-# * **City**: a place is **two neighbouring spots and one heading quadrant** (the database photographs each
-#   spot in 4 headings 90° apart; a query takes one of them); a cluster is 5 neighbouring spots and one
-#   heading quadrant; the clique graph joins only images whose headings differ by at most 30°. Random-place
-#   batches draw among the places with $\ge 4$ images.
+# * **Route**: a place is 2 consecutive frames (4 images), inside the positive radius, which is also $\tau$.
+#   A cluster is 10 frames (25 m). The route is one city.
+# * **City**: a place is **two neighbouring spots and one heading quadrant**; a cluster is 5 spots and one
+#   quadrant. Cliques join only images at most 30° apart in heading.
 
 # %%
 def training_set(split, groups, clusters):
@@ -195,9 +170,8 @@ for p, d in data.items():
 # %% [markdown]
 # ## Build it: Eq. (1), a random-place batch and the batch invariants
 #
-# The weights of Eq. (1) in three lines; the baseline's sampler (GSV-Cities: $P$ places drawn uniformly among
-# those with at least $K$ images, then $K$ random images of each) in four; and a checker for what Eqs. (2) and
-# (4) guarantee: every place pairwise $< \tau$, different places $\ge \tau$ apart, no image twice.
+# The weights of Eq. (1), the baseline's sampler ($P$ places with at least $K$ images, $K$ random images each),
+# and a checker: places pairwise $< \tau$ inside, $\ge \tau$ apart, no image twice.
 
 # %%
 def similar_group_probs(x, anchor):                                  # Eq. (1)
@@ -223,11 +197,8 @@ def check_batch(batch, utm, tau):                                   # Eqs. (2) a
 # %% [markdown]
 # ## Use `vpr_nb`: the samplers of the library
 #
-# `vpr_nb.samplers.random_place_batches` draws the baseline's batches (and `RandomPlaceBatches` does so for the
-# training loop); with the same seed it gives the same batches as `random_places_by_hand`.
-# `vpr_nb.samplers.clique_batches` (and `CliqueBatchMaker`) builds clique batches with Eqs. (1)–(4), from group
-# descriptors of the frozen backbone computed once; every one of its batches must pass `check_batch`, and a
-# random-place batch need not, since nothing keeps its places apart.
+# `random_place_batches` must match `random_places_by_hand`. Every batch of `clique_batches` (steps 1–4;
+# `CliqueBatchMaker` in training) must pass `check_batch`; a random batch need not.
 
 # %%
 image_desc = {p: compute_descriptors(frozen, d["images"]) for p, d in data.items()}   # the pretrained model
@@ -254,8 +225,7 @@ print(f"largest heading difference inside a place: clique {heading_spread(cb, d[
       f"random {heading_spread(rb, d['heading']):.1f} deg")
 
 # %% [markdown]
-# The first clique batch and the first random batch of the route as a picture
-# (`vpr_nb.plots.plot_clique_batches`), on the map of the route's training images:
+# The first clique batch and the first random batch of the route (`vpr_nb.plots.plot_clique_batches`):
 
 # %%
 plots.plot_clique_batches(route["utm"], batches["route"]["clique"][0], batches["route"]["random"][0],
@@ -263,23 +233,17 @@ plots.plot_clique_batches(route["utm"], batches["route"]["clique"][0], batches["
 plt.show()
 
 # %% [markdown]
-# **Figure 1.** One clique batch (top) and one random-place batch (bottom) of the tuned route, on the same map:
-# every training image in light grey, the 4 images of each of the batch's 16 places in one colour per place.
-# The clique batch takes its places from similar clusters of the route (Eq. 1), as cliques of the graph of
-# Eq. (2): they crowd into a few hundred metres, neighbouring places only just $\tau$ apart, so its negatives
-# are frames a few metres from the anchor. The random batch spreads its places over the whole training route
-# (539 frames 2.5 m apart, about 1.3 km). The titles give the median distance between the place centres of
-# each batch.
+# **Figure 1.** One clique batch (top) and one random batch (bottom) of the tuned route; one colour per place.
+# Clique places crowd together, neighbours just $\tau$ apart. Random places spread over the whole route (about
+# 1.3 km). Titles: median distance between place centres.
 
 
 # %% [markdown]
 # ## What the batches contain
 #
-# For every pair of places of a batch: the distance between their centres and the cosine similarity of their
-# descriptors (mean of the place's frozen-backbone descriptors; `vpr_nb.samplers.batch_statistics`), median over
-# 20 batches of 16 places; and for every image, the distance to the nearest image of another place of its
-# batch (its hardest geographic negative). CliqueMining's point is that its places are **closer and more alike** than random
-# ones; `tests/test_samplers.py` checks the same on a multi-city world.
+# Per batch (`batch_statistics`): the distance and cosine similarity between places. Per image: the distance to
+# the nearest image of another place (its hardest geographic negative), and its cosine to its positives and to
+# its most alike negative. Medians over 20 batches.
 
 # %%
 def nearest_other_place(batches, utm):
@@ -314,11 +278,15 @@ for p in data:
               f"{np.median(nearest_other_place(bb, data[p]['utm'])):>15.1f} m {np.median(pc):>13.3f} {np.median(nc):>21.3f}")
 
 # %% [markdown]
+# **Reading the table.** On the route, clique places are about four times closer than random ones (110.0 m
+# against 414.7 m). The hardest negative lies 5 m away, like the evaluation's, and looks as alike as the
+# positives (0.864 against 0.856). The tiny city shows the opposite: clique places are no closer (122.6 m
+# against 118.5 m) and their nearest negative is farther (37.5 m against 25.0 m).
+
+# %% [markdown]
 # ## The graph, its cliques and a batch on the map
 #
-# The images of the groups used by one city batch, the edges of Eq. (2), and the places the batch took (one
-# colour each). Right: for every image of a batch, the distance to the nearest image of *another* place of
-# the batch, its hardest geographic negative, for clique and random batches (medians in the legend).
+# One city clique batch on its graph, and the negatives of 20 batches.
 
 # %%
 batch = cb[0]
@@ -352,21 +320,16 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 2.** One clique batch of the city (left): every image (light grey), the images of the batch's
-# groups and the edges of Eq. (2) between them (grey), and the 16 places of the batch (one colour each).
-# Right: for every image of 20 clique and 20 random batches, the distance to the nearest image of another
-# place of its batch (its hardest geographic negative); the dashed line is $\tau$.
+# **Figure 2.** Left: one city clique batch: all images (light grey), its groups and the edges of Eq. (2)
+# (dark grey), its 16 places (colours). Right: each image's distance to the nearest image of another place, in
+# 20 clique and 20 random batches. No clique negative crosses $\tau$ (dashed).
 
 # %% [markdown]
 # ## Before training: how alike are a clique batch's negatives?
 #
-# A clique batch holds places that are next to each other: on the tuned route its nearest negative is a frame
-# a few metres away, photographed in the **same season** as the anchor, while the anchor's positive is the
-# query image of its own frame, from **another season**. If the same-season neighbour already looks more alike
-# than the cross-season positive, the batch asks the loss to push apart views that differ less than the
-# positives do. For every training frame and the frame $k$ frames ahead: how often is that same-season
-# neighbour closer (Euclidean distance of the L2-normalised descriptors) than the frame's own cross-season
-# positive (Eq. 2 of `vpr_nb.probes`)?
+# A clique negative is a frame a few metres away in the **same season**; the positive is the same spot in
+# **another season**. How often is the frame $k$ frames ahead closer than the frame's own positive (Eq. 2 of
+# `vpr_nb.probes`)? Then the loss must push apart views that differ less than positives do.
 
 # %%
 def near_duplicates_by_hand(db, q, utm, frames):
@@ -390,30 +353,23 @@ for name, shares in NEAR_DUP.items():
     print(f"{name:>24}: " + "   ".join(f"{k}: {v:.3f}" for k, v in shares.items()))
 
 # %% [markdown]
+# **Reading the probe.** The frame 5 m ahead wins for a fifth of the frames in raw pixels (0.196) and an eighth
+# under the frozen backbone (0.127). So clique batches hold few near-duplicates.
+
+# %% [markdown]
 # ## Experiment: the paper's comparison and the mining-only ablation
 #
-# The paper trains DINOv2-SALAD on GSV-Cities (sparse places, each a few images of one spot, far from the
-# others) and reports **+14 R@1 points on Nordland** when half of each batch comes from MSLS *cliques* (dense
-# sequences, places a few metres apart). That comparison changes the **data and the mining** at once. Here:
-# **sparse** places are the city world's places, **dense** ones the tuned route's (evaluated on the route's
-# test split, as Nordland is a route). Three arms, the same steps and seeds, each step one MS loss per half
-# (the paper's two-loss step), 8 + 8 places × 4 images:
+# The paper reports **+14 R@1 points on Nordland** when half of each GSV-Cities batch (sparse places) becomes
+# MSLS *cliques* (dense places). That changes the **data and the mining** at once. Here sparse places come from
+# the city, dense ones from the route, and we test on the route. Each step holds 8 + 8 places × 4 images:
 #
-# * **sparse only**: 16 random city places (the paper's GSV-Cities baseline);
-# * **sparse + dense random**: 8 random city places + 8 random route places (the data, without the mining);
-# * **sparse + dense cliques**: 8 random city places + 8 route places from a clique batch (Eqs. 1–2, group
-#   descriptors from the frozen backbone, computed once): the paper's method.
+# * **sparse only**: 16 random city places (the baseline);
+# * **sparse + dense random**: 8 city + 8 random route places;
+# * **sparse + dense cliques**: 8 city + 8 route clique places (the paper's method).
 #
-# **The paper's comparison** is *sparse + dense cliques* vs *sparse only*; **the mining-only ablation** is
-# *sparse + dense cliques* vs *sparse + dense random*. The model follows the course recipe: the course backbone
-# with its last block trainable + SALAD on its output (after the ReLU) with standardised head inputs (notebook 05: the
-# published initialisation starts collapsed here), Adam, the starting weights as the epoch-0 candidate, the best route
-# validation epoch kept. It deviates in two places: every run trains up to 40 epochs of 50 steps (2,000 steps) and
-# stops after 8 epochs without a better validation R@1 (SALAD's heads start from scratch, and a validation curve
-# of 50-step epochs is too noisy for the recipe's patience of 4 epochs to say that training has stopped
-# helping), and every arm trains at the recipe's default
-# lr ($10^{-3}$) instead of a searched one (an lr search would triple the run time). Evaluation: R@1 with the positive radius at
-# ±1, ±2 and ±4 frames, R@5, the mis-ordering probabilities of notebook 06 and the top-5 order agreement.
+# *Cliques* vs *sparse only* is **the paper's comparison**; *cliques* vs *dense random* is **the mining-only
+# ablation**. The model is the course backbone (last block trainable) + SALAD, up to 2,000 steps, best
+# validation epoch kept (settings: `docs/notes/07_clique_mining.md`).
 
 # %%
 HALF, NB = 8, 50                              # places per half, batches per epoch
@@ -530,12 +486,9 @@ for s, cols in res["per seed"].items():
 # %% [markdown]
 # ## Verdicts
 #
-# The paper reports that CliqueMining lifts DINOv2-SALAD from 76 to 90 R@1 on Nordland (+14 points). Below,
-# first the controls: does each arm beat its own starting weights (the untrained SALAD head) and, the control
-# that gates the comparisons, the frozen backbone + GeM (not fine-tuning at all) on R@1 by more than 2 SE? Then
-# the paired differences over the committed seeds for the paper's comparison and the mining-only ablation
-# (`vpr_nb.results.gated_verdict` for R@1: printed only when the baseline arm passes the control; the other
-# metrics under the same gate; lower $p$ is better).
+# Controls first: does each arm beat its untrained start and,
+# the gate, the frozen backbone + GeM by more than 2 SE? Then the paired differences, shown only if the
+# baseline passes the gate; lower $p$ is better.
 
 # %%
 CLIQUE, SPARSE, RANDOM = "sparse + dense cliques", "sparse only", "sparse + dense random"
@@ -585,8 +538,19 @@ plt.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 3.** Reproduce profile: test R@1 at ±1 and ±4 frames and $p(5, 10)$ for the three arms, one dot per
-# seed (grey lines pair the seeds), mean ± standard deviation in black, and the frozen references (dashed).
+# **Figure 3.** R@1 at ±1 and ±4 frames and $p(5, 10)$ per arm (reproduce profile): one dot per seed, grey
+# lines pair seeds, mean ± std in black, frozen references dashed.
+
+# %% [markdown]
+# **Reading the result** (reproduce profile, 5 seeds).
+#
+# * *Controls.* Both dense arms reach or beat the frozen backbone + GeM (random +0.058 ± 0.019, beyond 2 SE;
+#   cliques +0.008 ± 0.012). Sparse only ends below it (−0.083 ± 0.021), so the paper's comparison is
+#   inconclusive.
+# * *The ablation goes against the paper at this scale.* Random dense places beat cliques by about 5 R@1 points,
+#   beyond 2 SE, and on the mis-ordering probabilities and top-5 order.
+# * *Possible causes, not isolated.* Clique places span about a quarter of the distances of random ones, and
+#   their hardest negatives are as alike as their positives.
 
 # %%
 record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "max epochs": RUN["max_epochs"],
@@ -598,11 +562,9 @@ record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "max
 # %% [markdown]
 # ## Graded exercise: how far from a clique batch is a batch?
 #
-# A diagnosis of the invariant "different places $\ge \tau$ apart". Write `close_pairs(batch, utm, tau)`: for a
-# batch `(P, K)` of image indices (one row per place) and image positions `utm` $[N, 2]$, the number of
-# unordered pairs of images of *different* places that lie less than `tau` metres apart, as a Python int, in
-# numpy (no `vpr_nb`). A clique batch has none. Grading runs only the notebook's import cells and your
-# solution cell.
+# Write `close_pairs(batch, utm, tau)`: for a `(P, K)` batch of image indices and positions `utm` $[N, 2]$,
+# return the number of image pairs from *different* places less than `tau` apart (a Python int; numpy, no
+# `vpr_nb`). A clique batch has none. Grading runs only the import cells and your solution cell.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-07-close-pairs", "locked": false, "schema_version": 3, "solution": true}
 def close_pairs(batch, utm, tau):
@@ -639,13 +601,10 @@ check("close_pairs", [Case("6 random places x 4 images in a 100 m square, tau 20
 # %% [markdown]
 # ## Graded exercise: predict, then choose the batch with the hardest negatives
 #
-# In a clique batch every place is at least $\tau$ from every image chosen before it (step 4 of the
-# Theory), so an image's hardest *geographic* negative, the nearest image of another place of its batch,
-# lies at least $\tau$ away.
+# In a clique batch every place is at least $\tau$ from the images chosen before it (step 4).
 #
-# **Predict first:** if the same-place threshold $\tau$ doubles, do the hardest negatives of clique batches
-# get `"closer"`, `"farther"`, or stay at `"the same"` distance? Replace the `raise` below by
-# `NEGATIVES_IF_TAU_DOUBLES = "..."` with one of those three strings.
+# **Predict first:** if $\tau$ doubles, do the hardest geographic negatives get `"closer"`, `"farther"`, or
+# stay at `"the same"` distance? Replace the `raise` below by `NEGATIVES_IF_TAU_DOUBLES = "..."`.
 
 # %% tags=["grade-deps:ex-07-tau-predict", "grade-deps:ex-07-pick-batch"]
 import numpy as np  # what the two exercises below need: grading runs this cell, then your solution cell
@@ -665,12 +624,10 @@ check("NEGATIVES_IF_TAU_DOUBLES", [Case("the hardest geographic negatives of cli
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Then choose.** You are given candidate batches (each a `(P, K)` integer array of image indices, one row
-# per place) and the image positions `utm` $[N, 2]$. Write `pick_clique_batch(batches, utm, tau)`: the index
-# of the batch that CliqueMining could have produced (every place's images pairwise closer than `tau`,
-# images of different places at least `tau` apart, no image twice) and, among those, gives the **hardest
-# negatives**: the smallest median, over its images, of the distance to the nearest image of another place.
-# Return a Python int, or -1 when no candidate is a valid clique batch, in numpy (no `vpr_nb`).
+# **Then choose.** Write `pick_clique_batch(batches, utm, tau)`. A valid batch has places pairwise closer than
+# `tau` inside, at least `tau` apart, and no image twice. Return the index of the valid batch with the
+# **hardest negatives** (smallest median distance to another place's nearest image), or -1 if none; numpy
+# only.
 
 # %% nbgrader={"grade": false, "grade_id": "ex-07-pick-batch", "locked": false, "schema_version": 3, "solution": true}
 def pick_clique_batch(batches, utm, tau):
@@ -751,121 +708,62 @@ check("pick_clique_batch", [Case(name, (b, utm_h, t), expect=want) for name, b, 
 ### END HIDDEN TESTS
 
 # %% [markdown]
-# **Reading the result** (committed reproduce profile, up to 2,000 steps per run; the CI profile above trains 50
-# steps on one seed).
-#
-# * *The batches are the published ones on the route.* With 25 m clusters and similar clusters of the same
-#   city, a clique batch's places are about four times closer than a random batch's and look more alike
-#   (the batch-statistics table), and the median image's hardest negative lies 5 m away, where the
-#   evaluation's nearest negatives are. On the tiny city the table shows the opposite: clique places are no
-#   closer than random ones (median 122.6 m against 118.5 m) and their images' nearest negative is farther,
-#   37.5 m against 25.0 m, i.e. geographically easier. A clique batch keeps every other place at least
-#   $\tau$ = 25 m from its images, a random one need not (the invariant check above fails for the random
-#   city batch). The city clique batches gain only a little place similarity (0.808 against 0.792), and
-#   their hardest negatives are no more alike than random ones' (cosine 0.825 both); the heading test keeps
-#   every place within 30°.
-# * *With content near the camera, the clique half holds few near-duplicates.* The same-season frame 5 m
-#   ahead is closer than the cross-season positive for about a fifth of the training frames in raw pixels and
-#   an eighth under the frozen backbone (0.196 and 0.127, the probe before the experiment); 2.5 m ahead, inside
-#   a place, a quarter under the frozen backbone.
-# * *Controls.* Every arm gains far over its untrained SALAD start. The two arms with dense route places
-#   reach or beat the frozen backbone + GeM (random: +0.058 ± 0.019, beyond 2 SE; cliques: +0.008 ± 0.012,
-#   level); sparse city places alone end below it (−0.083 ± 0.021), so the paper's comparison stays
-#   inconclusive.
-# * *The mining-only ablation has a verdict, against the paper's premise at this scale:* random dense places
-#   beat dense cliques on R@1 at ±1, ±2 and ±4 frames by about 5 points beyond 2 SE, and on the mis-ordering
-#   probabilities and the top-5 order too (verdict cell): cliques do not even improve the ordering of
-#   neighbouring frames they are built to teach. Two measured differences of the batches stand out: a clique
-#   batch's places lie a median 110 m apart against 415 m for random ones, on a training route of 539
-#   frames 2.5 m apart (about 1.3 km) with 270 places (the batch-statistics table and the place counts), so
-#   a clique step's places spread over about a quarter of the distances a random step's do; and its hardest
-#   negatives are as alike as its positives (median cosine 0.864 vs 0.856).
-#   Which of the two costs the Recall here was not isolated (exercise 1 and 2 vary the batches). The paper
-#   mines among MSLS's tens of thousands of places in 30 cities.
-#
 # ## Exercises
 #
-# 1. **Refresh.** Pass no `group_descriptors` and `refresh_every=1` to `CliqueBatchMaker`: the group
-#    descriptors then come from the model being trained, every epoch (not the paper's protocol). Does the
-#    paired difference change?
-#    <details><summary>Hint</summary>Build a fourth arm as the experiment cell builds <code>dense_cliques</code>,
-#    but with <code>group_descriptors=None, refresh_every=1</code>, wrap it as
-#    <code>MixedPlaceBatches([sparse_half, maker], [0, CITY_N])</code> in a <code>Method</code> with
-#    <code>PlaceBatches</code>, train it with <code>search_methods</code> on the same seeds and compare it with
-#    the clique arm seed by seed (<code>results.gated_verdict</code>), not one run each.</details>
-# 2. **Threshold.** On the route, try $\tau = 25$ m (the paper's value) with places of 10 frames. The MS loss
-#    then pulls together images 22.5 m apart: what happens to $p(5, 10)$ and to R@1 at ±1 frame?
-#    <details><summary>Hint</summary>With $\tau$ = 25 m a place spans 10 frames, so the loss treats frames
-#    22.5 m apart as the same place while the evaluation's positives are ±1 frame: read $p(5, 10)$ and R@1
-#    from the evaluation cell for both thresholds.</details>
-# 3. **One city.** Call `clique_batches` on `city` without `headings`: how many places mix headings (use
-#    `heading_spread`)? And on a multi-city set, drop `regions`: how far apart are the places of a batch
-#    (`batch_statistics`)?
-#    <details><summary>Hint</summary><code>heading_spread(batch, d["heading"])</code> gives the largest heading
-#    difference inside the places of a batch; count the places above 45°. For the multi-city set,
-#    <code>batch_statistics</code> reports the place-centre distances.</details>
-# 4. **Similar groups.** Set `similar_groups=0`: cliques from the anchor group only. How many anchors does a
-#    batch need, and how do the place distances change?
-#    <details><summary>Hint</summary>With no similar groups a batch of 16 places must come from many
-#    anchor groups, each giving only the cliques of its own group; count the distinct anchors per batch and
-#    compare the median place distance of <code>batch_statistics</code>.</details>
-# 5. **Speed.** Run `python bench/bench_mining.py --quick` and read `bench/reference_clique.py`: why is a new
-#    networkx graph per place so much slower than one k-d tree per anchor and an alive mask, and why is the
-#    cost per batch flat in the number of geotags?
-#    <details><summary>Hint</summary>Count what each implementation rebuilds per place: a graph over all
-#    images of the candidate groups, or a tree built once and a mask updated per place; then ask which costs
-#    depend on the total number of geotags.</details>
+# 1. **Refresh.** Pass `group_descriptors=None, refresh_every=1` to `CliqueBatchMaker`. Does the paired
+#    difference change?
+#    <details><summary>Hint</summary>Build a fourth arm like <code>dense_cliques</code> and train it with
+#    <code>search_methods</code> on the same seeds; compare seed by seed.</details>
+# 2. **Threshold.** On the route, try $\tau = 25$ m with places of 10 frames. What happens to $p(5, 10)$ and
+#    R@1?
+#    <details><summary>Hint</summary>The loss then pulls together frames 22.5 m apart; positives stay ±1
+#    frame.</details>
+# 3. **One city.** Call `clique_batches` on `city` without `headings`: how many places mix headings? On a
+#    multi-city set without `regions`, how far apart are a batch's places?
+#    <details><summary>Hint</summary>Count places above 45° with <code>heading_spread</code>; distances come from
+#    <code>batch_statistics</code>.</details>
+# 4. **Similar groups.** Set `similar_groups=0`. How many anchors does a batch need, and how do place distances
+#    change?
+#    <details><summary>Hint</summary>Count distinct anchors; compare <code>batch_statistics</code>.</details>
+# 5. **Speed.** Run `python bench/bench_mining.py --quick`. Why is a networkx graph per place slower than one
+#    k-d tree per anchor and an alive mask? Why is the cost per batch flat in the number of geotags?
+#    <details><summary>Hint</summary>Count what each rebuilds per place (read
+#    <code>bench/reference_clique.py</code>).</details>
 #
 # ## Takeaways
 #
-# * CliqueMining only changes the batches: similar clusters of the anchor's city (Eq. 1), places as cliques
-#   of the geographic graph (Eq. 2, here with a heading test), negatives just beyond the same-place threshold;
-#   `clique_batches` guarantees the invariants, and on the route its places are closer and more alike than
-#   random places with the same place definition (batch-statistics table).
-# * The place definition must match the evaluation (places within the positive radius, one heading), and
-#   the baseline must use the same one; otherwise a comparison measures the place definition, not the sampler.
-# * Before comparing samplers, check what a clique batch's negatives are (probe) and where the model fails
-#   (near-miss share). On the route with content near the camera, random dense route places lift SALAD above
-#   the frozen backbone + GeM; clique batches of the same places end level with it, below the random ones on
-#   R@1 and on the order of neighbouring frames (mining-only ablation, verdict cell). The paper's comparison is
-#   inconclusive because sparse places alone end below the frozen backbone.
+# * CliqueMining changes only the batches: look-alike clusters of one city (Eq. 1), places as cliques of the
+#   geographic graph (Eq. 2), negatives just beyond the same-place threshold.
+# * The baseline must share the place definition, and it must match the evaluation.
+# * Probe the negatives and the near-miss share before comparing samplers.
+# * Here random dense places beat the frozen backbone + GeM; cliques of the same places end level with it,
+#   below the random ones. The paper's comparison is inconclusive: sparse places alone end below the frozen
+#   backbone.
 
 # %% [markdown]
 # ## Self-check
 #
-# 1. What does CliqueMining change in training, and what does it leave as it is?
-#    <details><summary>Answer</summary>Only the batches: places are cliques of the geographic graph of similar
-#    groups of one city, with negatives just beyond the same-place threshold. The model, the loss (one
-#    Multi-Similarity loss per half) and the optimiser stay the same, and the baseline's second half is random
-#    places with the same place definition.</details>
-# 2. Why must a place fit inside the evaluation's positive radius and, in the city, face one way?
-#    <details><summary>Answer</summary>The loss pulls the images of a place together: if they are farther
-#    apart than the positive radius, or face different ways and share no content, it pulls together images that
-#    the evaluation (or the scene) does not consider the same place.</details>
-# 3. In Eq. (1), which groups of the anchor's city are the most likely to be drawn, and which is never drawn?
-#    <details><summary>Answer</summary>The groups whose descriptor is closest to the anchor's are the most
-#    likely (weight $\max_k d_k - d_j$); the farthest group has weight 0 and never comes, and neither does the
-#    anchor itself.</details>
+# 1. What does CliqueMining change in training, and what does it keep?
+#    <details><summary>Answer</summary>Only the batches: cliques of look-alike groups of one city, negatives just
+#    beyond $\tau$. Model, loss and optimiser stay.</details>
+# 2. Why must a place fit inside the positive radius and, in the city, face one way?
+#    <details><summary>Answer</summary>The loss pulls a place's images together, even ones the evaluation does
+#    not count as one place.</details>
+# 3. In Eq. (1), which groups are most likely to be drawn, and which never?
+#    <details><summary>Answer</summary>The ones most alike the anchor. The farthest group (weight 0) and the
+#    anchor never.</details>
 
 # %% [markdown]
 # ## References
 #
 # * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place
-#   Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422); code:
-#   [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining).
-# * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (DINOv2-SALAD).
-#   CVPR 2024. [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code:
-#   [github.com/serizba/salad](https://github.com/serizba/salad) (the model CliqueMining fine-tunes).
-# * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition.*
-#   Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239); code:
-#   [github.com/amaralibey/gsv-cities](https://github.com/amaralibey/gsv-cities) (random-place batches, the baseline).
-# * X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott. *Multi-Similarity Loss with General Pair Weighting for Deep
-#   Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627); code:
-#   [github.com/MalongTech/research-ms-loss](https://github.com/MalongTech/research-ms-loss),
-#   [github.com/KevinMusgrave/pytorch-metric-learning](https://github.com/KevinMusgrave/pytorch-metric-learning).
-# * F. Warburg, S. Hauberg, M. López-Antequera, P. Gargallo, Y. Kuang, J. Civera. *Mapillary Street-Level
-#   Sequences: A Dataset for Lifelong Place Recognition.* CVPR 2020 (the data CliqueMining mines cliques from);
-#   code: [github.com/mapillary/mapillary_sls](https://github.com/mapillary/mapillary_sls).
-# * A. Hagberg, D. Schult, P. Swart. *Exploring Network Structure, Dynamics, and Function using NetworkX.*
-#   SciPy 2008; code: [github.com/networkx/networkx](https://github.com/networkx/networkx) (`find_cliques`, used
-#   by the original code and by `bench/reference_clique.py`).
+#   Recognition.* ECCV 2024. [arXiv](https://arxiv.org/abs/2407.02422),
+#   [code](https://github.com/serizba/cliquemining).
+# * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition.* CVPR 2024.
+#   [arXiv](https://arxiv.org/abs/2311.15937), [code](https://github.com/serizba/salad).
+# * A. Ali-bey et al. *GSV-Cities.* Neurocomputing 2022. [arXiv](https://arxiv.org/abs/2210.10239),
+#   [code](https://github.com/amaralibey/gsv-cities).
+# * X. Wang et al. *Multi-Similarity Loss with General Pair Weighting.* CVPR 2019.
+#   [arXiv](https://arxiv.org/abs/1904.06627), [code](https://github.com/KevinMusgrave/pytorch-metric-learning).
+# * F. Warburg et al. *Mapillary Street-Level Sequences.* CVPR 2020. [code](https://github.com/mapillary/mapillary_sls).
+# * A. Hagberg et al. *NetworkX.* SciPy 2008. [code](https://github.com/networkx/networkx).
