@@ -381,8 +381,8 @@ for name, r in fixed.items():
 # best model on validation Recall@1 is tested once. Descriptors: GeM 128-D, NetVLAD ($K = 16$)
 # $16 \cdot 128 = 2048$-D.
 #
-# The CI profile trains one seed for one epoch: a smoke test. The committed reproduce profile below trains
-# each row fully on 5 seeds.
+# CI: one seed, one epoch. Committed results: 5 seeds, 8 epochs each. Notebooks 03 (0.858) and 05 (0.835)
+# train the NetVLAD row until validation stops improving; 03 also searches the lr.
 
 # %%
 TB = EXPERIMENT["trainable_blocks"]
