@@ -711,7 +711,7 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 # %% [markdown]
 # ## Exercises
 #
-# 1. **σ that ranks.** Add a cell after the (locked) imports cell that sets `SIGMA = 25.0`, and rerun the
+# 1. **σ that ranks.** In a new cell after the (locked) imports cell, set `SIGMA = 25.0`, then rerun the
 #    gradient measurement and one seed of the tables. Does the weight now do more than rescale the loss?
 #    <details><summary>Hint</summary>Compare <code>distance_weight_curve(25.0, EPS, marks=(0.0,
 #    10.0)).relative_spread</code> with σ = 800 m. A weight that ranks the positives changes the cosine
