@@ -26,10 +26,8 @@
 # * generate the course's two synthetic worlds (`make_dataset("city")`,
 #   `make_dataset("route")`) and look at their maps, splits, conditions and geotags;
 # * compute a query's *positives* (the database images that count as correct) by hand and with `vpr_nb`;
-# * see in pixels why VPR is hard: **parallax** (nearby cameras see shifted content),
-#   **perceptual aliasing** (different places look alike) and **condition change** (the same place looks different);
-# * see how much a few metres change an image, with and without content near the camera;
-# * read the table of difficulty knobs that notebook 01 sweeps.
+# * see in pixels why VPR is hard: **parallax**, **perceptual aliasing** and **condition change**;
+# * see how much a few metres change an image, and read the difficulty knobs that notebook 01 sweeps.
 
 # %% tags=["parameters"]
 PROFILE = "ci"  # "ci": the tiny worlds (fast, what CI checks); "reproduce": the larger "small" worlds
@@ -83,8 +81,7 @@ print("world size:", SIZE)
 # $$\Delta u = f_{px}\, \frac{t}{Z}\ \text{pixels}. \tag{3}$$
 #
 # Near facades ($Z \approx 10$ m) slide across the image while the far skyline ($Z \approx 1000$ m)
-# stays put. Nearby cameras share content, and content changes *continuously* with distance. That makes
-# a 25 m radius meaningful, and it is why a query 20 m from its positive can look quite different.
+# stays put: content changes *continuously* with distance, so a query 20 m from its positive can look quite different.
 #
 # **Perceptual aliasing.** Facades are drawn from a small library of $K$ styles (`num_facade_types`).
 # With $B$ buildings each style appears about $B/K$ times, so two places far apart can look alike.
@@ -143,10 +140,9 @@ for ds in (city, route):
 # %% [markdown]
 # ### Maps and splits
 #
-# Train / val / test are **geographically disjoint** bands, with gaps wider than the positive radius.
-# No test query has a positive among the training images, so memorising the training places cannot pass
-# the test. Colours mark the splits only (blue train, orange val, green test; dots database, crosses
-# queries); light grey lines are walls, dark grey dots trees.
+# Train / val / test are **geographically disjoint** bands, with gaps wider than the positive radius, so
+# memorising the training places cannot pass the test. Blue train, orange val, green test; dots database,
+# crosses queries; grey lines walls, dark grey dots trees.
 
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(10, 8.5))
@@ -185,9 +181,8 @@ plt.show()
 # %% [markdown]
 # ### The difficulty knobs
 #
-# Every knob of the world lives in one dataclass, `WorldConfig`; `make_dataset(..., **overrides)`
-# changes any of them (for example `make_dataset("city", condition_strength=0.5)`), and an unknown
-# name raises a `ValueError`. The *difficulty knobs* are the ones notebook 01 sweeps.
+# Every knob lives in the dataclass `WorldConfig`; `make_dataset(..., **overrides)` changes any of them
+# (an unknown name raises a `ValueError`). Notebook 01 sweeps the *difficulty knobs*.
 
 # %%
 DIFFICULTY = {
@@ -216,8 +211,8 @@ for n in differ:
 # %% [markdown]
 # ## Use `vpr_nb`: positives
 #
-# `dataset.positives()` (which calls `vpr_nb.evaluation.positives_within`, a KD-tree range search that
-# never builds the full distance matrix) must give exactly the sets of Eq. (1) computed by hand above.
+# `dataset.positives()` (a KD-tree range search, `vpr_nb.evaluation.positives_within`) must give exactly
+# the sets of Eq. (1) computed by hand above.
 
 # %%
 city_test, route_test = city.test, route.test
@@ -234,10 +229,8 @@ print("hand-made positives == vpr_nb positives for", city_test.name, "and", rout
 #
 # ### How many positives does a query have?
 #
-# In the city a place is photographed in 4 headings every 10 m along the street. A 25 m radius holds a
-# few dozen database images, **most of them looking another way**: a positive by geotag need not share
-# any content with the query. On the route a query has its own frame and the neighbour(s) within one
-# frame spacing.
+# In the city, database images stand every 10 m in 4 headings. A 25 m radius holds a few dozen,
+# **most of them looking another way**. On the route a query has its own frame and its neighbour(s).
 
 # %%
 n_city = np.array([len(p) for p in city_test.positives()])
@@ -303,9 +296,8 @@ plt.show()
 # How quickly does appearance change with distance? Below: the cosine similarity of same-heading
 # database images against the distance between their cameras. Two pixel descriptors: raw pixels
 # (flattened, L2-normalised: notebook 01's baseline) and *centred* pixels (minus the mean database image).
-# Raw cosines all sit near 0.85, because every image shares the same layout of sky, facades and road.
-# Centring removes that shared part and shows the decay. Either way, similarity falls to the level of
-# unrelated pairs within a few tens of metres: beyond that, pixels alone cannot tell the same place.
+# Raw cosines all sit near 0.85 (a shared layout of sky, facades and road); centring shows the decay.
+# Either way, similarity falls to the level of unrelated pairs within a few tens of metres.
 
 # %%
 x = city.db_images.reshape(len(city.db_images), -1).astype(np.float32) / 255.0
@@ -349,9 +341,7 @@ plt.show()
 #   sweeps across the image.
 #
 # The printout gives the share of test frames whose same-season frame $s$ metres ahead is *closer* in raw
-# pixels than their own cross-season query (`vpr_nb.probes.near_duplicate_probe`, derived in notebook 07).
-# Where that holds for most frames, the neighbour is a near-duplicate. A loss that treats it as a negative
-# pushes apart two views that differ less than the positives do.
+# pixels than their own cross-season query (`vpr_nb.probes.near_duplicate_probe`, notebook 07).
 
 # %%
 NO_NEAR_CONTENT = {"roadside_spacing": 0.0, "camera_yaw": 0.0}
@@ -371,17 +361,15 @@ for label, shares in NEAR_DUPLICATES.items():
     print(f"{label:>24}: " + "   ".join(f"s = {k:4.1f} m: {v:.3f}" for k, v in shares.items()))
 
 # %% [markdown]
-# **Figure.** Route frames 2.5 m apart in summer (first six images of each row), then the first frame's
-# winter query. Top: without near content, consecutive frames differ in a few far pixels. Bottom: on the
-# default route, each 2.5 m step moves the near objects across the image.
+# **Figure.** Route frames 2.5 m apart in summer, then the first frame's winter query. Top: without near
+# content, frames differ in a few far pixels. Bottom: each step moves the near objects across the image.
 
 # %% [markdown]
 # ### Perceptual aliasing: two places, one facade style
 #
-# For every city database image we cast the central ray and find the building it hits (the scene,
-# `dataset.extra["scene"]`, holds wall segments with a facade `style` id). Among image pairs **more than
-# 100 m apart** whose central buildings share a style, we show the pair with the most alike raw pixels.
-# Beside them: each image's true neighbour 10 m down the street.
+# For every city database image we cast the central ray and find the building it hits, with its facade
+# `style` (`dataset.extra["scene"]`). Among pairs **more than 100 m apart** sharing a style, we show the
+# most alike in raw pixels, and beside them each image's true neighbour 10 m down the street.
 
 # %%
 scene = city.extra["scene"]
@@ -438,9 +426,8 @@ record("00_synthetic_world", {
 # 1. **Radius.** Recompute the city positives with $r = 10$ m and $r = 50$ m (`ds.positives(radius)`).
 #    How does the mean number of positives scale with $r$? Why roughly like $r$ rather than $r^2$?
 #    <details><summary>Hint</summary><code>np.mean([len(p) for p in city_test.positives(10.0)])</code>, and
-#    the same with 50.0. The database cameras stand only on the streets, every 10 m, in 4 headings. How many
-#    camera positions does a disc of radius $r$ cover on one straight street? What changes once it reaches a
-#    crossing or a parallel street?</details>
+#    the same with 50.0. Cameras stand only on the streets: how many positions does a disc of radius $r$
+#    cover on one straight street?</details>
 # 2. **Parallax.** With Eq. (3), how far must the camera move for a facade 10 m away to shift by half
 #    the image width? And the skyline at 1000 m? Check the first against the route frames above.
 #    <details><summary>Hint</summary>Solve Eq. (3) for $t$ with $\Delta u = W/2 = 24$ px and the printed
@@ -449,9 +436,8 @@ record("00_synthetic_world", {
 # 3. **Aliasing.** Regenerate the city with `num_facade_types=2` and with `num_facade_types=40`. Which setting
 #    makes VPR harder? Compare the cosine of the most alike far-apart pair.
 #    <details><summary>Hint</summary><code>city = make_dataset("city", seed=0, size=SIZE, num_facade_types=2)</code>.
-#    Then rerun the cosine-vs-distance cell (it makes <code>descs</code> and <code>sub</code>) and the aliasing
-#    cell. The default 10 styles give 0.965. One pair is a single sample; notebook 01 measures the knob in
-#    Recall@1. Regenerate the default city afterwards.</details>
+#    Then rerun the cosine-vs-distance cell and the aliasing cell (the default 10 styles give 0.965).
+#    Regenerate the default city afterwards.</details>
 # 4. **Conditions.** Generate `make_dataset("city", condition_strength=0.0)`. What do the queries look
 #    like now, and which difficulties remain?
 #    <details><summary>Hint</summary>Make
@@ -483,9 +469,8 @@ record("00_synthetic_world", {
 #
 # 1. A city test query has 29.31 positives on average. In the grid of a query and its nearest positives, why
 #    do only a few share content with it?
-#    <details><summary>Answer</summary>Positives are defined by geotag alone, Eq. (1): every database image
-#    within 25 m, taken in 4 headings every 10 m. Only those that look roughly the query's way (within 45°, the
-#    framed ones) see the same facades. The others look down the street or at the other side.</details>
+#    <details><summary>Answer</summary>Positives are defined by geotag alone, Eq. (1), in all 4 headings.
+#    Only those looking roughly the query's way (within 45°, framed) see the same facades.</details>
 # 2. Raw-pixel cosines between images of the same heading are about 0.85 whether their cameras are 20 m or
 #    500 m apart. Why, and what does the centred version show?
 #    <details><summary>Answer</summary>Every image shares the same layout of sky, facades and road, which
@@ -494,10 +479,9 @@ record("00_synthetic_world", {
 # 3. The same-season frame 5 m ahead is closer in raw pixels than the frame's winter query for 0.910 of the
 #    test frames without near content, and for 0.164 on the default route. What does that mean for a
 #    training loss, and what makes the difference?
-#    <details><summary>Answer</summary>Without near content the frame 5 m ahead is a near-duplicate. A loss that
-#    treats it as a negative pushes apart two images that differ less than a query and its positive. The default
-#    route has roadside objects every metre and a camera turned 45° to the side. Near content sweeps across
-#    the image, so a few metres do change it (parallax, Eq. 3).</details>
+#    <details><summary>Answer</summary>Without near content the frame 5 m ahead is a near-duplicate. A loss
+#    treating it as a negative pushes apart images that differ less than a query and its positive. On the
+#    default route near content sweeps across the image (parallax, Eq. 3).</details>
 
 # %% [markdown]
 # ## References

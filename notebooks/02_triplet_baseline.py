@@ -123,7 +123,7 @@ plt.show()
 
 # %% [markdown]
 # **Figure 1.** Eq. (3) on this batch. Left: a query (star), its positive (blue) and negatives at their true
-# distances. Negatives inside the grey margin band's outer edge are active (red, loss > 0); those beyond are
+# distances. Negatives inside the grey margin band are active (red, loss > 0), those beyond
 # satisfied (green). Right: all 40 triplets; those below the line $d(q,n) = d(q,p) + m$ have loss.
 
 # %% [markdown]
@@ -214,7 +214,7 @@ mining = mining_table(model, "untrained network")
 # A random network maps all street views to nearly the same vector. So almost any negative is within the
 # margin, and even random triplets carry loss; hard ones carry more (the ratio above). Once the network
 # separates places, most random negatives give no gradient, while mined ones are still the look-alikes it
-# confuses. The trained network's table comes after training.
+# confuses.
 #
 # ### Which way does the positive face?
 #
@@ -329,9 +329,8 @@ plt.show()
 # ### Test Recall@N against the baselines
 #
 # The last row is the frozen **course backbone** (`vpr_nb.pretrain.course_backbone()`) with GeM. It is a
-# wider SmallCNN, pretrained on other synthetic worlds, never on this one. It stands in for the ImageNet-VGG16
-# of DW-T-Loss and the DINOv2 of SALAD. Its card (`vpr_nb/weights/course_backbone.json`) records how it was
-# made. Notebooks 03–07 start from it.
+# wider SmallCNN pretrained on other synthetic worlds, never this one, standing in for the papers' ImageNet-VGG16
+# and DINOv2. Notebooks 03–07 start from it.
 
 # %%
 te = ds.test
@@ -380,8 +379,8 @@ print(f"wrong top-1: {int((~correct).sum())} of {len(correct)}; median distance 
       f"{np.median(dist_m[~correct, 0]):.0f} m")
 
 # %% [markdown]
-# **Figure 5.** Two test queries solved at rank 1 and two that are not. Each row shows the query (grey
-# frame) and its top-5 database images: framed green within 25 m, red otherwise, and labelled with their
+# **Figure 5.** Two test queries solved at rank 1 and two that are not. Each row: the query (grey
+# frame) and its top-5 database images, framed green within 25 m, red otherwise, labelled with their
 # true distance.
 
 # %% [markdown]
@@ -581,54 +580,43 @@ check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 qu
 # 1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with `num_candidates=M`. How
 #    many epochs does each need to reach the recipe's validation R@1?
 #
-#    <details><summary>Hint</summary>Compare
-#    <code>train_recipe()</code> and <code>train_recipe(max_heading_diff=HEADING_DIFF, num_candidates=M)</code>
-#    epoch by epoch, through <code>[e["val"][1] for e in hist.epochs]</code>. Set
-#    <code>PROFILE = "reproduce"</code>: 3 epochs are too few to see a difference.</details>
+#    <details><summary>Hint</summary>Set <code>PROFILE = "reproduce"</code> (3 epochs are too few) and compare
+#    <code>[e["val"][1] for e in hist.epochs]</code> epoch by epoch.</details>
 # 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on
 #    plain L2). What fraction of mined triplets violates the margin at the end of training?
 #
-#    <details><summary>Hint</summary>Copy <code>train_recipe</code> and pass <code>TripletLoss(margin=0.3)</code>
-#    to <code>TripletSource</code>.
-#    The function <code>mining_table</code> uses the global <code>MARGIN</code>: set it to 0.3 first, and back
-#    to 0.1 afterwards.</details>
+#    <details><summary>Hint</summary>Pass <code>TripletLoss(margin=0.3)</code> to <code>TripletSource</code>
+#    in a copy of <code>train_recipe</code>; <code>mining_table</code> reads the global margin.</details>
 # 3. **Squared distances, trained.** Train with the graded exercise's loss: pass `TripletSource` a subclass of
 #    `vpr_nb.losses.TripletFamilyLoss` whose `__call__(q, p, n, geo_qp=None)` returns
 #    `my_sq_triplet_loss(q, p, n, margin)`. For $d(q, p) = 0.5$, which squared margin selects the same
 #    violating triplets as $m = 0.1$?
 #
-#    <details><summary>Hint</summary>A negative violates Eq. (3) when $d_n < d_p + m$, and the squared form
-#    when $d_n^2 < d_p^2 + m'$. Equate both boundaries for $d_p = 0.5$. Does one $m'$ work for every
-#    $d_p$?</details>
+#    <details><summary>Hint</summary>Equate the boundaries $d_n = d_p + m$ and $d_n^2 = d_p^2 + m'$. Does one
+#    $m'$ work for every $d_p$?</details>
 # 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is
 #    best here? (Notebook 03 measures it with several seeds.)
 #
-#    <details><summary>Hint</summary>Copy <code>train_recipe</code> with the pooling as an argument and compare
-#    <code>evaluate_model(net, te, NS)</code>. One seed moves R@1 by
-#    several points, so run two or three seeds per pooling.</details>
+#    <details><summary>Hint</summary>One seed moves R@1 by several points: run two or three per
+#    pooling.</details>
 # 5. **Semi-hard negatives.** FaceNet trains on negatives farther than the positive but within the margin.
 #    Implement that selection from the output of `mine_triplets` and compare.
 #
-#    <details><summary>Hint</summary>Take the indices from <code>mine(300)</code> (-1 where missing). Compute
-#    $d(q, p)$ and $d(q, n)$ from <code>q_desc</code> and <code>db_desc</code> as <code>hinge</code> does. Keep negatives with $d(q,p) < d(q,n) < d(q,p) + m$. How many queries still
-#    have one?</details>
+#    <details><summary>Hint</summary>From <code>mine(300)</code>, keep negatives with
+#    $d(q,p) < d(q,n) < d(q,p) + m$.</details>
 #
 # ## Takeaways
 #
 # * Eq. (3) is one line of torch. It equals `torch.nn.TripletMarginLoss` (sum reduction) up to its `eps`.
 # * Only margin-violating triplets carry gradient. After training, random negatives rarely violate the
 #   margin (about one in eight), while most mined ones still do. So mining decides what the network learns.
-# * Weak GPS supervision needs care: the positive must show the query's place. Without a heading filter, the untrained network's positive faces the
-#   query's way for only 0.451 of the queries, so this notebook filters by heading. The stored run does not
-#   measure what that is worth in recall (Exercise 1).
+# * Weak GPS supervision needs care: without a heading filter, the untrained network's positive faces the
+#   query's way for only 0.451 of the queries. The stored run does not measure what the filter is worth (Exercise 1).
 # * A 3-epoch CPU run from random weights lifts test R@1 far above raw pixels, not to the course backbone's.
-#   It has not converged: validation R@1 still rose from 0.602 to 0.684 in the last epoch. One seed is noisy
-#   (Exercise 4).
+#   It has not converged: validation R@1 still rose from 0.602 to 0.684 in the last epoch.
 # * A collapsed run's loss climbs back near $M \cdot m$ and its mean pairwise cosine approaches 1 (the lr 0.5
-#   run). A healthy run's loss falls well below it.
-# * The test table above compares the from-scratch model with the frozen course backbone. Notebooks 03–07
-#   fine-tune that backbone, as the papers fine-tune a pretrained backbone. They
-#   change only the loss, the aggregator or the batches.
+#   run).
+# * Notebooks 03–07 fine-tune the frozen course backbone, changing only the loss, the aggregator or the batches.
 
 # %% [markdown]
 # ## Self-check
@@ -636,33 +624,28 @@ check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 qu
 # 1. A triplet's negative is already farther from the query than $d(q, p) + m$. What does it contribute to
 #    the gradient of Eq. (3), and why does that make mining necessary?
 #
-#    <details><summary>Answer</summary>Nothing: the hinge is at zero, so loss and gradient are zero. Once
-#    the network separates places, almost every random negative is like that. Without mined (look-alike)
-#    negatives, the batches stop teaching anything.</details>
+#    <details><summary>Answer</summary>Nothing: the hinge is at zero. Once the network separates places,
+#    almost every random negative is like that, so only mined look-alikes still teach.</details>
 # 2. Why does this notebook keep only potential positives that face the query's way, when NetVLAD's rule on
 #    Pittsburgh does not?
 #
-#    <details><summary>Answer</summary>Each place here has 4 headings, so a potential positive 5 m away often
-#    shows other facades. An untrained network picks a view facing the query's way for only 0.451 of the
-#    queries. NetVLAD's VGG16 starts from ImageNet weights, which plausibly already prefer the right view
-#    (untested here). Trained with the filter, our network picks it for 0.908.</details>
+#    <details><summary>Answer</summary>With 4 headings per place, a potential positive 5 m away often shows
+#    other facades: the untrained network picks the right view for only 0.451 of the queries.</details>
 # 3. Which two numbers that <code>train</code> records tell you a run has collapsed? What is the collapsed
 #    loss of Eq. (3) per query with $M = 5$ and $m = 0.1$?
 #
-#    <details><summary>Answer</summary>A loss that stays near the collapsed loss, $M \cdot m = 0.5$ per
-#    query, and a mean pairwise cosine of the validation descriptors close to 1.</details>
+#    <details><summary>Answer</summary>A loss near $M \cdot m = 0.5$ and a mean pairwise cosine near
+#    1.</details>
 
 # %% [markdown]
 # ## References
 #
 # * Y. Xiong, S. Xu, G. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place
-#   Recognition* (DW-T-Loss): Eq. (3), the triplet loss; notebook 03 reproduces its loss study.
+#   Recognition* (DW-T-Loss).
 # * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic, *NetVLAD: CNN architecture for weakly
 #   supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247);
-#   code: [Relja/netvlad](https://github.com/Relja/netvlad), PyTorch port
 #   [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
 # * F. Radenović, G. Tolias, O. Chum, *Fine-tuning CNN image retrieval with no human annotation*, TPAMI
-#   2018, [arXiv:1711.02512](https://arxiv.org/abs/1711.02512) (GeM pooling);
-#   code: [filipradenovic/cnnimageretrieval-pytorch](https://github.com/filipradenovic/cnnimageretrieval-pytorch).
+#   2018, [arXiv:1711.02512](https://arxiv.org/abs/1711.02512).
 # * F. Schroff, D. Kalenichenko, J. Philbin, *FaceNet: a unified embedding for face recognition and
-#   clustering*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832) (semi-hard negatives).
+#   clustering*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832).

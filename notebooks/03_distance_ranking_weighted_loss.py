@@ -19,17 +19,16 @@
 # # 03 · DW-T-Loss: distance-weighted and cross-entropy triplet losses
 #
 # **Aim.** Reproduce, in miniature, the loss study of *Distance-Ranking-Based Weighted Triplet Loss for
-# Visual Place Recognition* (Yu Xiong, Shixiong Xu & Gaofeng Meng). The paper fine-tunes conv5 of an
-# ImageNet-pretrained VGG16 with NetVLAD-64 on Pittsburgh30k, under four losses. Here we fine-tune the last
-# block of the **course backbone** (`vpr_nb.pretrain.course_backbone`) with **NetVLAD** on the tiny city
+# Visual Place Recognition* (Xiong, Xu & Meng): VGG16 conv5 with NetVLAD-64 on Pittsburgh30k, under four
+# losses. Here we fine-tune the last block of the **course backbone** with **NetVLAD** on the tiny city
 # world. You will
 #
-# * explore the geographic weight of Eq. (4), and see what $\sigma = 800$ m does to positives within 10–25 m;
+# * see what Eq. (4) with $\sigma = 800$ m does to positives within 10–25 m;
 # * build the cross-entropy triplet loss, Eqs. (5)–(8), and DW-T-Loss, Eq. (9), in plain torch;
-# * measure each loss's gradient against T-Loss's, and see what a softmax without temperature does;
+# * compare each loss's gradient with T-Loss's, and see what a softmax without temperature does;
 # * fine-tune under four losses (a **Table II analog**) and two poolings (a **Table III analog**), over 5
 #   paired seeds, next to the paper's numbers;
-# * see when the distance weight is just a learning-rate factor: under SGD (the paper's optimiser) or Adam.
+# * see when the distance weight is just a learning-rate factor: under SGD or Adam.
 
 # %% tags=["parameters", "grade-deps:ex-03-ce-tau"]
 PROFILE = "ci"  # "ci": 1 seed, 1 short epoch per row (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
@@ -72,41 +71,36 @@ print(f"profile {PROFILE}")
 #
 # $$L_T = \sum \max(0,\; d_p - d_n + m). \tag{3}$$
 #
-# **Geographic weight.** Every positive lies within the training radius, but some are closer to the query
-# than others. DW-T-Loss weights a triplet by the query–positive distance $g_{qp}$ in metres:
+# **Geographic weight.** DW-T-Loss weights a triplet by the query–positive distance $g_{qp}$ in metres:
 #
 # $$w = \frac{1 + \varepsilon}{g_{qp} / \sigma + \varepsilon} - 1 . \tag{4}$$
 #
-# $w = 1/\varepsilon$ at $g_{qp} = 0$, $w = 0$ at $g_{qp} = \sigma$, and $w < 0$ beyond $\sigma$. The
-# **W-T-Loss** is $\sum w \cdot \max(0, d_p - d_n + m)$.
+# $w = 1/\varepsilon$ at $g_{qp} = 0$, $w = 0$ at $g_{qp} = \sigma$, and $w < 0$ beyond. **W-T-Loss** is
+# $\sum w \cdot \max(0, d_p - d_n + m)$.
 #
-# **Cross-entropy triplet loss.** Instead of a hinge, turn the two distances into a two-way softmax,
+# **Cross-entropy triplet loss.** Turn the two distances into a two-way softmax,
 #
 # $$\hat d_p = \frac{e^{d_p}}{e^{d_p} + e^{d_n}}, \qquad \hat d_n = \frac{e^{d_n}}{e^{d_p} + e^{d_n}}, \qquad \hat d_p + \hat d_n = 1, \tag{5–6}$$
 #
-# and ask for the target "the negative is the far one", $(\hat d_p, \hat d_n) \to (0, 1)$, with the cross-entropy
+# and ask for $(\hat d_p, \hat d_n) \to (0, 1)$ with the cross-entropy
 #
 # $$L_{CE} = -\sum \big[\,0 \cdot \log \hat d_p + 1 \cdot \log \hat d_n\big] = -\sum \log \hat d_n
 #         = \sum \log\big(1 + e^{\,d_p - d_n}\big) = \sum \operatorname{softplus}(d_p - d_n). \tag{7–8}$$
 #
-# It has no margin. The loss and its gradient, the logistic function
-# $\operatorname{sig}(d_p - d_n) = 1 / (1 + e^{d_n - d_p})$, shrink smoothly as $d_n$ outgrows $d_p$ but
-# never vanish.
-#
-# **DW-T-Loss** weights the cross-entropy triplet loss with Eq. (4):
+# It has no margin; its gradient $\operatorname{sig}(d_p - d_n)$ shrinks as $d_n$ outgrows $d_p$ but never
+# vanishes. **DW-T-Loss** weights it with Eq. (4):
 #
 # $$L_{DW} = -\sum w \cdot \log \hat d_n . \tag{9}$$
 #
-# **The paper's settings** are those of `Nanne/pytorch-NetVlad`: SGD at lr $10^{-4}$, $\sigma = 800$ m,
-# $\varepsilon = 0.1$, and no per-loss rescaling of the learning rate. This notebook keeps $m = 0.1$, sums over
-# the $M = 5$ negatives of a query and otherwise follows the course recipe. More on the paper's code:
-# `docs/notes/03_distance_ranking_weighted_loss.md`.
+# **The paper's settings** (`Nanne/pytorch-NetVlad`): SGD at lr $10^{-4}$, $\sigma = 800$ m,
+# $\varepsilon = 0.1$, no per-loss rescaling of the learning rate. Here $m = 0.1$, summed over the $M = 5$
+# negatives; more in `docs/notes/03_distance_ranking_weighted_loss.md`.
 
 # %% [markdown]
 # ## Eq. (4): what σ = 800 m means for positives within 10–25 m
 #
-# The numbers come from the tested function `vpr_nb.widgets.distance_weight_curve`. The sliders below are a
-# thin view of it (JupyterLab only; the static page shows the default).
+# The numbers come from the tested function `vpr_nb.widgets.distance_weight_curve`; the sliders below
+# (JupyterLab only) are a thin view of it.
 
 # %%
 curve = distance_weight_curve(SIGMA, EPS, max_distance=1000.0, marks=(0.0, 5.0, 10.0, 25.0))
@@ -128,8 +122,8 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 1.** The geographic weight of Eq. (4) at σ = 800 m, ε = 0.1: from 0 to 1000 m (left) and over
-# the positives' range, 0 to 25 m, with the 10 m training radius (right).
+# **Figure 1.** Eq. (4) at σ = 800 m, ε = 0.1, over 0–1000 m (left) and over the positives' 0–25 m,
+# with the 10 m training radius (right).
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -143,14 +137,13 @@ explorer.f(**explorer.kwargs)
 
 
 # %% [markdown]
-# **Figure 2.** The weight explorer: sliders for σ and ε redraw Eq. (4) in JupyterLab. Stored here is its
-# default state (σ = 800 m, ε = 0.1).
+# **Figure 2.** The weight explorer (sliders for σ and ε, JupyterLab only), stored in its default state
+# (σ = 800 m, ε = 0.1).
 
 # %% [markdown]
 # With σ = 800 m all positives sit on the flat start of the curve: $w$ goes from 10 at 0 m to 8.8 at 10 m.
-# So W-T-Loss is, to first order, **T-Loss multiplied by ≈ 9**, plus a mild preference for closer positives.
-# Under SGD a constant factor on the loss is a factor on the learning rate: W-T-Loss at T-Loss's learning
-# rate takes ~9× larger steps. (With σ = 25 m on the sliders, the weight really ranks the positives.)
+# So W-T-Loss is, to first order, **T-Loss multiplied by ≈ 9**; under SGD that is a ~9× larger learning
+# rate. (With σ = 25 m the weight really ranks the positives.)
 #
 # ## Build it: Eqs. (5)–(9) in plain torch
 
@@ -192,9 +185,8 @@ plots.plot_distance_weight(geo, weight_by_hand(geo, SIGMA, EPS), SIGMA, EPS)
 plt.show()
 
 # %% [markdown]
-# **Figure 3.** Eq. (4) for this batch's 8 positives: the curve on a log distance axis, zero at σ = 800 m,
-# with T-Loss's weight 1 dashed (left), and the weights by distance rank, all about 9 (right). W-T-Loss is
-# T-Loss scaled, not re-ranked.
+# **Figure 3.** Eq. (4) for this batch's 8 positives on a log distance axis, with T-Loss's weight 1 dashed
+# (left), and the weights by distance rank, all about 9 (right): scaled, not re-ranked.
 
 # %% [markdown]
 # ## Use `vpr_nb`: the same numbers
@@ -217,18 +209,15 @@ print("CE-Loss on descriptors scaled by 1e4 (naive exp would overflow):", f"{ce_
 # %% [markdown]
 # ## The course recipe, the pretrained backbone and the references
 #
-# Every fine-tune follows the **course recipe** (`vpr_nb.recipe.RECIPE`, shared by notebooks 03–07). The
-# course backbone's last block trains (the analogue of conv5), and each aggregator reads its output after
-# the final ReLU. NetVLAD starts from k-means on the training database. A batch holds 16 queries, each with
-# the 5 hardest of 300 negatives (margin 0.1, positives facing within 45°). Adam, weight decay $10^{-3}$ and
-# StepLR(5, 0.5) train until validation Recall@1 has not improved for 4 epochs; the starting weights are the
-# "epoch-0" candidate. Each loss's learning rate is chosen on validation from a small grid, here widened by
-# the paper's $10^{-4}$. Validation is a second city (seed 1, 803 queries), never trained or tested on. For
-# one training seed every row starts from the **same initial weights** and the same mining randomness; only the loss (with its learning rate) or the pooling changes.
+# Every fine-tune follows the **course recipe** (`vpr_nb.recipe.RECIPE`, notebooks 03–07): the course
+# backbone's last block trains (the analogue of conv5), NetVLAD starts from k-means, and Adam trains until
+# validation R@1 stalls for 4 epochs, the start counting as "epoch 0". Each loss's learning rate is chosen
+# on a separate validation city from a small grid that includes the paper's $10^{-4}$. For one training
+# seed every row starts from the **same initial weights** and mining randomness; only the loss (with its
+# learning rate) or the pooling changes. Batch and validation details: `docs/notes/03_distance_ranking_weighted_loss.md`.
 #
-# The course backbone is a `SmallCNN` pretrained with the Multi-Similarity loss on other worlds (seeds
-# $\ge 100$). It outputs an 8×12 map of 128-d local features. NetVLAD-16 turns it into a
-# $16 \cdot 128 = 2048$-d descriptor.
+# The course backbone is a `SmallCNN` pretrained with the Multi-Similarity loss on other worlds. It
+# outputs an 8×12 map of 128-d local features; NetVLAD-16 makes a $16 \cdot 128 = 2048$-d descriptor.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -280,13 +269,12 @@ for name, rec in REFERENCES.items():
 
 # %% [markdown]
 # These are the fine-tunes' starting points; each training seed re-runs NetVLAD's k-means and is compared
-# with its own start. No local feature is switched off entirely by the
-# final ReLU (the fraction printed above).
+# with its own start. No local feature is switched off entirely by the final ReLU (the fraction printed above).
 #
 # ### How large is each loss's gradient? Measured on real triplets
 #
-# Mine one batch of real triplets (64 training queries) with the starting NetVLAD model. Compare each loss's
-# gradient with T-Loss's: its direction (cosine similarity) and its size (norm ratio $\rho$).
+# Mine one batch of real triplets (64 training queries) with the starting NetVLAD model, and compare each
+# loss's gradient with T-Loss's: direction (cosine) and size (norm ratio $\rho$).
 
 # %%
 # NBVAL_TOLERANCE=0.02   k-means and trained numbers: other CPUs round a little differently
@@ -338,16 +326,14 @@ print(f"{b} valid triplet queries; their positives lie {np.median(geo_qp):.1f} m
 
 # %% [markdown]
 # W-T-Loss points exactly as T-Loss does and is about $\bar w$ times longer. CE-Loss weights each triplet by
-# $\operatorname{sig}(d_p - d_n)$ instead of 0 or 1. At the start every $d_n - d_p$ lies near 0, so every
-# triplet gets a weight near ½, even the satisfied ones that T-Loss ignores. So CE-Loss's gradient is
-# shorter than T-Loss's and turns away from it. DW-T-Loss's is about $\bar w$ times CE-Loss's. The three
-# aggregators agree. Under SGD these ratios are ratios of step sizes; under Adam they cancel.
+# $\operatorname{sig}(d_p - d_n)$ instead of 0 or 1; at the start $d_n - d_p \approx 0$, so every triplet,
+# even a satisfied one, gets about ½. Its gradient is shorter than T-Loss's and turns away from it;
+# DW-T-Loss's is about $\bar w$ times CE-Loss's. The three aggregators agree.
 #
 # ### The softmax of Eqs. (5)–(6) has no temperature
 #
-# Since $d_p, d_n \in [0, 2]$, the softmax's input $d_n - d_p$ lies in $[-2, 2]$. So
-# $\hat d_n = \operatorname{sig}(d_n - d_p)$ stays within $[0.12, 0.88]$. The plot compares CE-Loss with a
-# temperature $\tau = 0.1$ version (as in InfoNCE) and with T-Loss's hinge.
+# Since $d_n - d_p \in [-2, 2]$, $\hat d_n = \operatorname{sig}(d_n - d_p)$ stays within $[0.12, 0.88]$.
+# The plot compares CE-Loss with a $\tau = 0.1$ version (as in InfoNCE) and with T-Loss's hinge.
 
 # %%
 # NBVAL_TOLERANCE=0.02   k-means and trained numbers: other CPUs round a little differently
@@ -379,30 +365,27 @@ print(f"real triplets (initial NetVLAD model): d_n − d_p from {gap.min():.3f} 
       f"and {np.mean(gap < MARGIN):.3f} of them violate the margin {MARGIN}")
 
 # %% [markdown]
-# **Figure 4.** Left: $\hat d_n$ over the reachable range of $d_n - d_p$, without and with τ = 0.1. Right:
-# each loss's derivative per triplet (CE-Loss, CE with τ = 0.1, T-Loss at both margins) over the
-# histogram of $d_n - d_p$ of the real triplets (grey).
+# **Figure 4.** Left: $\hat d_n$ over the reachable $d_n - d_p$, without and with τ = 0.1. Right: each
+# loss's derivative per triplet over the histogram of the real triplets' $d_n - d_p$ (grey).
 
 # %% [markdown]
-# Without a temperature the CE loss is almost **linear** over the reachable range. Every triplet, hard or
-# easy, pushes with about the same strength (about ½ here), and the loss never falls below
-# $\log(1 + e^{-2}) \approx 0.13$ per triplet. T-Loss's hinge pushes only on violating triplets.
+# Without a temperature the CE loss is almost **linear** here: every triplet, hard or easy, pushes with
+# about ½, and the loss never falls below $\log(1 + e^{-2}) \approx 0.13$. T-Loss's hinge pushes only on
+# violating triplets.
 #
 # ### SGD or Adam: when is a factor on the gradient a factor on the step?
 #
-# Under **SGD** the step is $\eta \nabla L$: a gradient $\rho$ times T-Loss's gives $\rho$ times larger steps.
-# So the paper's W-T-Loss at lr $10^{-4}$ trains like T-Loss at about $9 \times 10^{-4}$. **Adam** divides
-# each weight's gradient by a running estimate of its size, so a constant factor cancels. Under Adam,
-# W-T-Loss should train like T-Loss, and DW-T-Loss like CE-Loss.
+# Under **SGD** the step is $\eta \nabla L$, so the paper's W-T-Loss at lr $10^{-4}$ trains like T-Loss at
+# about $9 \times 10^{-4}$. **Adam** divides each weight's gradient by a running estimate of its size, so a
+# constant factor cancels: W-T-Loss should train like T-Loss, DW-T-Loss like CE-Loss.
 #
 # ## Experiment: Table II and Table III analogs
 #
 # Table II: NetVLAD-16 with T-Loss, W-T-Loss, CE-Loss and DW-T-Loss. Table III: max and mean pooling with
-# T-Loss and with DW-T-Loss (the paper's "-W" rows). These eight rows use the recipe. Each learning rate is
-# the best by mean validation R@1 over seeds 0–2; seeds 3 and 4 train at it only. Two more rows, T-Loss and
-# W-T-Loss, use **SGD** (momentum 0.9) at the paper's lr $10^{-4}$. CI runs one epoch; the tables show
-# the committed results. Notebooks 04 (0.827, 8 epochs) and 05 (0.835, lr $10^{-3}$) train the T-Loss row
-# without this lr search.
+# T-Loss and DW-T-Loss (the paper's "-W" rows). Each learning rate is the best by mean validation R@1 over
+# seeds 0–2; seeds 3 and 4 train at it only. Two more rows, T-Loss and W-T-Loss, use **SGD** (momentum 0.9)
+# at the paper's lr $10^{-4}$. CI runs one epoch; the tables show the committed results. Notebooks 04
+# (0.827, 8 epochs) and 05 (0.835, lr $10^{-3}$) train the T-Loss row without this lr search.
 
 # %%
 SGD = dataclasses.replace(RECIPE, optimizer="sgd")          # the SGD rows: the paper's optimiser and lr
@@ -552,17 +535,15 @@ fig.tight_layout(rect=(0, 0, 1, 0.93))   # the legend above both panels, clear o
 plt.show()
 
 # %% [markdown]
-# **Figure 5.** Test R@1 of the Table II analog (left, with the two SGD rows) and the Table III analog
-# (right). Blue: mean ± std over seeds (dots: single seeds). Red bar: each row's own start. Orange: the
-# paper's Pittsburgh30k numbers.
+# **Figure 5.** Test R@1, Table II analog with the two SGD rows (left) and Table III analog (right): mean ±
+# std over seeds in blue (dots: seeds), each row's start in red, the paper's Pittsburgh30k numbers in orange.
 
 # %% [markdown]
 # ### Verdicts: paired differences over seeds, behind a working control
 #
-# Each line gives the mean per-seed difference of test R@1 between two paired rows and its standard error. A
-# row "is better" only when the difference exceeds 2 SE. A comparison counts only when its baseline beats
-# **its own starting weights** by more than 2 SE (`vpr_nb.results.gated_verdict`). First the controls, then
-# the comparisons.
+# Each line gives the mean paired per-seed difference of test R@1 and its standard error; a row "is better"
+# only beyond 2 SE. A comparison counts only when its baseline beats **its own starting weights** by more
+# than 2 SE (`vpr_nb.results.gated_verdict`). Controls first, then comparisons.
 
 # %%
 def r1(name):
@@ -714,58 +695,57 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 # 1. **σ that ranks.** In a new cell after the (locked) imports cell, set `SIGMA = 25.0`, then rerun the
 #    gradient measurement and one seed of the tables. Does the weight now do more than rescale the loss?
 #    <details><summary>Hint</summary>Compare <code>distance_weight_curve(25.0, EPS, marks=(0.0,
-#    10.0)).relative_spread</code> with σ = 800 m. A weight that ranks the positives changes the cosine
-#    column, not only the ratio.</details>
+#    10.0)).relative_spread</code> with σ = 800 m, and watch the cosine column.</details>
 # 2. **A temperature, trained.** Retrain CE-Loss with τ = 0.1. Does it now behave like T-Loss, and why
 #    (see the softmax plot)?
-#    <details><summary>Hint</summary>Subclass <code>vpr_nb.losses.TripletFamilyLoss</code>; its
-#    <code>__call__(q, p, n, geo_qp=None)</code> returns <code>my_ce_loss_tau(d_p, d_n, 0.1)</code>. Train it
-#    as a <code>Method</code> with <code>search_methods</code>, seeds 0–2. Under Adam its larger gradient needs no smaller learning rate.</details>
+#    <details><summary>Hint</summary>Subclass <code>vpr_nb.losses.TripletFamilyLoss</code> so that
+#    <code>__call__(q, p, n, geo_qp=None)</code> returns <code>my_ce_loss_tau(d_p, d_n, 0.1)</code>; train
+#    it with <code>search_methods</code>.</details>
 # 3. **Negative weights.** With σ = 8 m, a positive at 9 m gets $w < 0$. What does that do to a violated
 #    triplet? Should Eq. (4) be clipped at 0?
-#    <details><summary>Hint</summary>Which way does gradient descent move $d_n$ and $d_p$ when $w < 0$? Is
-#    an image 9 m away a wrong positive or just a far one?</details>
+#    <details><summary>Hint</summary>Which way does descent move $d_n$ and $d_p$ when $w < 0$? Is a
+#    positive at 9 m wrong or just far?</details>
 # 4. **The paper's margin.** Train T-Loss with `margin = 0.1 ** 0.5`, pytorch-NetVlad's effective margin.
 #    Does T-Loss move, and does the DW-T − T gap?
-#    <details><summary>Hint</summary>Use <code>TripletLoss(margin=0.1 ** 0.5)</code> in a
-#    <code>Method</code> and compare paired seeds with <code>results.gated_verdict</code>.</details>
+#    <details><summary>Hint</summary><code>TripletLoss(margin=0.1 ** 0.5)</code> in a <code>Method</code>;
+#    compare with <code>results.gated_verdict</code>.</details>
 # 5. **Seeds.** How many seeds would resolve a 0.01 difference in R@1 at two standard errors? Compare with the paper's single runs.
-#    <details><summary>Hint</summary>Solve $2 s_d / \sqrt n \le 0.01$, with $s_d$ the standard deviation of
-#    the per-seed differences of two rows.</details>
+#    <details><summary>Hint</summary>Solve $2 s_d / \sqrt n \le 0.01$ ($s_d$: std of the per-seed
+#    differences).</details>
 # 6. **SGD at the equal step.** Under SGD, train W-T-Loss at the paper's lr divided by its `RATIOS` entry.
 #    Is it then within 2 SE of T-Loss under SGD?
-#    <details><summary>Hint</summary>Pass <code>lr=PAPER_LR / RATIOS["netvlad"]["W-T-Loss"]</code> and
-#    the <code>SGD</code> recipe to <code>search_methods</code>.</details>
+#    <details><summary>Hint</summary><code>lr=PAPER_LR / RATIOS["netvlad"]["W-T-Loss"]</code> with the
+#    <code>SGD</code> recipe.</details>
 #
 # ## Takeaways
 #
-# * **Eq. (4) at $\sigma = 800$ m is a learning-rate factor.** Over the 10 m training radius the weight falls
-#   only from 10 to 8.8. W-T-Loss's gradient is T-Loss's times about 9.4, with cosine 1.000.
-# * **Under SGD at the paper's learning rate, the factor is what trains.** T-Loss moves a little from its
-#   start (+0.030 ± 0.005), W-T-Loss twice as far (+0.062 ± 0.008): W-T − T = +0.032 ± 0.009, beyond 2 SE.
+# * **Eq. (4) at $\sigma = 800$ m is a learning-rate factor.** Over the 10 m radius the weight falls only
+#   from 10 to 8.8; W-T-Loss's gradient is T-Loss's times about 9.4, cosine 1.000.
+# * **Under SGD at the paper's learning rate, the factor is what trains.** T-Loss gains +0.030 ± 0.005 over
+#   its start, W-T-Loss +0.062 ± 0.008: W-T − T = +0.032 ± 0.009, beyond 2 SE.
 # * **Under Adam the plain triplet loss leads.** Mean R@1: T 0.858, W-T 0.853, CE 0.834, DW-T 0.839 (paper
-#   0.812, 0.811, 0.797, 0.826). T-Loss beats its start by +0.111 ± 0.007, so comparisons count. W-T − T is
-#   within 2 SE: Adam undoes the factor. CE-Loss and DW-T-Loss end *below* T-Loss (−0.025 ± 0.009 and
-#   −0.020 ± 0.008). DW-T vs CE is within 2 SE: the weight adds nothing measurable. The paper has DW-T-Loss first; here it is not.
+#   0.812, 0.811, 0.797, 0.826). T-Loss beats its start by +0.111 ± 0.007. W-T − T is within 2 SE: Adam
+#   undoes the factor. CE-Loss and DW-T-Loss end *below* T-Loss (−0.025 ± 0.009, −0.020 ± 0.008); DW-T vs CE
+#   is within 2 SE. The paper has DW-T-Loss first; here it is not.
 # * **Table III analog: -W does not help.** All four rows beat their start (+3 to +10 points). Max-W vs Max
-#   is within 2 SE; Mean-W is below Mean (−0.037 ± 0.010). Mean beats Max (+0.015 ± 0.005), unlike the
-#   paper. NetVLAD beats max pooling by far (T-Loss − Max = +0.086 ± 0.008), as in the paper.
+#   is within 2 SE; Mean-W is below Mean (−0.037 ± 0.010); Mean beats Max (+0.015 ± 0.005), unlike the
+#   paper. NetVLAD beats max pooling by far (+0.086 ± 0.008), as in the paper.
 # * **Seeds matter.** Seed-to-seed standard deviations (0.003 to 0.020) match the paper's 1–3 point gaps
-#   between single runs. Only paired seeds, standard errors and a working control can order these losses.
+#   between single runs; only paired seeds, standard errors and a working control can order these losses.
 
 # %% [markdown]
 # ## Self-check
 #
 # 1. Why is W-T-Loss at σ = 800 m, to first order, T-Loss with a larger learning rate?
-#    <details><summary>Answer</summary>Over positives within 10 m, Eq. (4) only falls from 10 to 8.8. The
-#    loss is T-Loss times a nearly constant factor, which under SGD multiplies the learning rate.</details>
+#    <details><summary>Answer</summary>Within 10 m, Eq. (4) only falls from 10 to 8.8: a nearly constant
+#    factor, which under SGD multiplies the learning rate.</details>
 # 2. On L2-normalised descriptors, within which values does $\hat d_n$ of Eqs. (5)–(6) stay, and what does
 #    that do to CE-Loss?
-#    <details><summary>Answer</summary>$\hat d_n \in [0.12, 0.88]$, since $d_n - d_p \in [-2, 2]$. The loss
-#    is nearly linear and pushes every triplet about equally, violated or not.</details>
+#    <details><summary>Answer</summary>$[0.12, 0.88]$, since $d_n - d_p \in [-2, 2]$: the loss is nearly
+#    linear and pushes every triplet about equally.</details>
 # 3. Why would one training run per loss not be enough to rank these losses here?
-#    <details><summary>Answer</summary>The seed-to-seed standard deviations of R@1 (0.009 to 0.018) are as
-#    large as the gaps between the losses' means. One run each could give another order.</details>
+#    <details><summary>Answer</summary>Seed-to-seed standard deviations (0.009 to 0.018) are as large as
+#    the gaps between the means; one run each could give another order.</details>
 
 # %% [markdown]
 # ## References
@@ -773,10 +753,9 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 # * Y. Xiong, S. Xu, G. Meng, *Distance-Ranking-Based Weighted Triplet Loss for Visual Place Recognition*.
 # * R. Arandjelović, P. Gronát, A. Torii, T. Pajdla, J. Sivic, *NetVLAD: CNN architecture for weakly
 #   supervised place recognition*, CVPR 2016, [arXiv:1511.07247](https://arxiv.org/abs/1511.07247); code:
-#   [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad), whose defaults the paper uses.
+#   [Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
 # * A. Torii et al., *Visual Place Recognition with Repetitive Structures*, CVPR 2013 (Pittsburgh),
 #   [DOI 10.1109/CVPR.2013.119](https://doi.org/10.1109/CVPR.2013.119).
-# * F. Schroff et al., *FaceNet*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832) (the
-#   triplet margin loss).
+# * F. Schroff et al., *FaceNet*, CVPR 2015, [arXiv:1503.03832](https://arxiv.org/abs/1503.03832).
 # * X. Wang et al., *Multi-Similarity Loss with General Pair Weighting for Deep Metric Learning*, CVPR 2019,
 #   [arXiv:1904.06627](https://arxiv.org/abs/1904.06627).

@@ -25,11 +25,10 @@
 #   assignment) in torch;
 # * normalise as the paper does: each descriptor, each cluster (*intra-normalisation*), the whole vector;
 # * initialise with **k-means** (faiss) and pick the softmax sharpness $\alpha$ from the data;
-# * check your layer against `vpr_nb.aggregation.NetVLAD`, which loads the public `pytorch-NetVlad`
-#   checkpoints;
+# * check your layer against the library's `NetVLAD`, which loads the public checkpoints;
 # * measure whether NetVLAD should read the backbone **before or after its last ReLU**;
 # * fine-tune the **course backbone** with **GeM pooling** (Eq. G) vs NetVLAD on the tiny `city` world, with
-#   the same pipeline and budget (one seed live, five committed).
+#   the same pipeline and budget.
 
 # %% tags=["parameters", "grade-deps:ex-04-soft-share"]
 PROFILE = "ci"  # "ci": 1 seed, 1 epoch per model (a smoke test, < 60 s); "reproduce": 5 paired seeds, the full budget
@@ -84,51 +83,49 @@ print(f"profile {PROFILE}: {RUN['epochs']} epoch(s) per model, seeds {RUN['seeds
 #
 # **Bag of visual words** counts the descriptors nearest to each centroid:
 #
-# $$h_k = \sum_{i=1}^{N} a_k(x_i), \qquad a_k(x_i) = \mathbb{1}\big[k = \arg\min_{k'} \lVert x_i - c_{k'} \rVert\big]. \tag{1}$$
+# $$h_k = \sum_i a_k(x_i), \quad a_k(x_i) = \mathbb{1}[k = \arg\min_{k'} \|x_i - c_{k'}\|]. \tag{1}$$
 #
 # **VLAD** (Jégou et al., CVPR 2010) also keeps *where* the descriptors lie in each cell. It sums their
 # residuals to the centroid, giving a $K \times D$ matrix:
 #
-# $$V_k = \sum_{i=1}^{N} a_k(x_i)\,(x_i - c_k) \in \mathbb{R}^D. \tag{2}$$
+# $$V_k = \sum_i a_k(x_i)(x_i - c_k). \tag{2}$$
 #
 # **NetVLAD** makes the assignment soft, so that everything is differentiable:
 #
-# $$\bar a_k(x_i) = \frac{e^{-\alpha \lVert x_i - c_k \rVert^2}}{\sum_{k'} e^{-\alpha \lVert x_i - c_{k'} \rVert^2}}
-# = \frac{e^{w_k^\top x_i + b_k}}{\sum_{k'} e^{w_{k'}^\top x_i + b_{k'}}},
-# \qquad w_k = 2\alpha c_k,\; b_k = -\alpha \lVert c_k \rVert^2 \tag{3}$$
+# $$\bar a_k(x_i) = \operatorname{softmax}_k(-\alpha \|x_i - c_k\|^2) = \operatorname{softmax}_k(w_k^\top x_i + b_k),
+# \quad w_k = 2\alpha c_k,\ b_k = -\alpha \|c_k\|^2 \tag{3}$$
 #
-# The term $-\alpha\lVert x_i\rVert^2$ is the same for every $k$ and cancels. NetVLAD then *decouples*
+# (the $\|x_i\|^2$ term cancels). NetVLAD then *decouples*
 # $\{w_k, b_k\}$ from $\{c_k\}$ and learns all three:
 #
-# $$V_k = \sum_{i=1}^{N} \bar a_k(x_i)\,(x_i - c_k) = \Big(\sum_i \bar a_k(x_i)\, x_i\Big) - \Big(\sum_i \bar a_k(x_i)\Big) c_k . \tag{4}$$
+# $$V_k = \sum_i \bar a_k(x_i)(x_i - c_k) = \sum_i \bar a_k(x_i) x_i - \big(\sum_i \bar a_k(x_i)\big) c_k . \tag{4}$$
 #
 # So (3) is a $1\times1$ convolution plus a softmax, and the right side of (4) is one batched matrix
 # product.
 #
 # **Normalisations.** Each $x_i$ is L2-normalised first. Then each row $V_k$ is L2-normalised
-# (**intra-normalisation**, Arandjelović & Zisserman, CVPR 2013), so a bursty cluster (a repeated window
+# (**intra-normalisation**), so a bursty cluster (a repeated window
 # pattern) cannot dominate. Last, the flattened $K \cdot D$ vector is L2-normalised:
 #
-# $$v = \frac{\mathrm{vec}\big(V_1/\lVert V_1\rVert, \dots, V_K/\lVert V_K\rVert\big)}{\lVert \cdot \rVert}. \tag{5}$$
+# $$v = \mathrm{vec}(V_1/\|V_1\|, \dots, V_K/\|V_K\|) / \|\cdot\|. \tag{5}$$
 #
-# **Initialisation.** The widely used code (vladv1) sets $b_k = 0$ and $w_k = \alpha\, \hat c_k$ with
-# $\hat c_k = c_k/\lVert c_k\rVert$. For unit $x_i$ the logits are then $\alpha \cos(x_i, c_k)$. We choose
-# $\alpha$ so that, on average, the best cluster gets **100 times** the weight of the second best,
-# $e^{\alpha \bar\Delta} = 100$:
+# **Initialisation.** The public code (vladv1) sets $b_k = 0$ and $w_k = \alpha\, \hat c_k$ with
+# $\hat c_k = c_k/\|c_k\|$. For unit $x_i$ the logits are then $\alpha \cos(x_i, c_k)$. We choose
+# $\alpha$ so that, on average, the best cluster gets **100 times** the weight of the second best:
 #
-# $$\alpha = \frac{-\ln 0.01}{\bar\Delta}, \qquad \bar\Delta = \operatorname{mean}_i \big(\cos_{(1)}(x_i) - \cos_{(2)}(x_i)\big), \tag{6}$$
+# $$\alpha = \frac{\ln 100}{\bar\Delta}, \quad \bar\Delta = \operatorname{mean}_i (\cos_{(1)}(x_i) - \cos_{(2)}(x_i)), \tag{6}$$
 #
-# where $\cos_{(1)}, \cos_{(2)}$ are the best and second-best cosine similarities of $x_i$ to the centroids.
+# with the best and second-best cosines of $x_i$ to the centroids.
 # (vladv2 uses Eq. 3 with squared distances instead.)
 #
-# **The baseline: GeM.** Generalised-mean pooling (Radenović, Tolias & Chum, TPAMI 2018, their Eq. 3) keeps
+# **The baseline: GeM.** Generalised-mean pooling (Radenović et al., 2018) keeps
 # one number per channel, not a residual per cluster. For the $N$ activations $x_{c,i} \ge 0$ of channel $c$:
 #
-# $$f_c = \Big(\frac{1}{N} \sum_{i=1}^{N} x_{c,i}^{\,p}\Big)^{1/p}, \qquad \mathbf{f} = [f_1, \dots, f_D] / \lVert \cdot \rVert, \tag{G}$$
+# $$f_c = \big(\tfrac{1}{N} \sum_i x_{c,i}^p\big)^{1/p}, \quad \mathbf{f} = [f_1, \dots, f_D] / \|\cdot\|, \tag{G}$$
 #
-# The exponent $p$ is learnable: 3 at initialisation, $p = 1$ is mean pooling, $p \to \infty$ max pooling.
-# It gives $D$ numbers, NetVLAD $K \cdot D$. `vpr_nb.aggregation.GeM` clamps the activations
-# at $\varepsilon = 10^{-6}$ before the power, so it needs no ReLU.
+# The learnable $p$ starts at 3; $p = 1$ is mean pooling, $p \to \infty$ max pooling.
+# It gives $D$ numbers, NetVLAD $K \cdot D$. The library's `GeM` clamps the activations
+# at $10^{-6}$ before the power, so it needs no ReLU.
 
 # %% [markdown]
 # ## Build it: BoW, VLAD and NetVLAD in plain torch
@@ -191,16 +188,15 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **Figure 1.** Soft assignment of Eq. (3) on the toy vocabulary at α = 0.3, 3 and 30. Each point of the plane
-# is coloured by its three cluster weights (as RGB); black dots are descriptors, white stars centroids. A large
+# **Figure 1.** Soft assignment (3) of the toy vocabulary at α = 0.3, 3 and 30, as RGB; black dots are
+# descriptors, white stars centroids. A large
 # α approaches VLAD's hard assignment.
 
 # %% [markdown]
 # ## Use `vpr_nb`: the same layer from the library
 #
-# `vpr_nb.aggregation.NetVLAD` computes Eq. (4) for a whole batch with one `bmm`. Its parameters are named as
-# in the public `pytorch-NetVlad` layer (`conv.weight`, `conv.bias` for vladv2, `centroids`), so those
-# checkpoints load with `load_state_dict`. Same weights, same output as the derivation above:
+# The library's `NetVLAD` computes Eq. (4) for a whole batch with one `bmm`. Its parameters are named as
+# in the public `pytorch-NetVlad` layer, so its checkpoints load. Same weights, same output as above:
 
 # %%
 vpr_nb.seed_everything(0)
@@ -219,14 +215,14 @@ for vladv2 in (False, True):
 # ## The course backbone and its local features
 #
 # Like NetVLAD (ImageNet VGG16, only conv5 trains), we fine-tune a *pretrained* backbone: the **course
-# backbone**, a `SmallCNN`. It maps a 32×48 image to an 8×12 map: $N = 96$
-# local features with $D = 128$ channels. It was pretrained with the Multi-Similarity loss and GeM on
-# synthetic worlds with seeds $\ge 100$, never on the seed-0 world used below. `course_backbone(k)` trains its
+# backbone**. It maps a 32×48 image to an 8×12 map: $N = 96$
+# local features with $D = 128$ channels, pretrained (Multi-Similarity loss, GeM) on
+# synthetic worlds of seeds $\ge 100$, never on the seed-0 world used below. `course_backbone(k)` trains its
 # last $k$ of 4 blocks (1 = the final 1×1 projection, like conv5).
 #
 # That last block ends in a **ReLU**. The public NetVLAD code reads VGG16's conv5_3 **before** its ReLU, so
 # we measure both sides. The recipe reads the output, after the ReLU; `before_relu` swaps the ReLU
-# for an identity. A ReLU can switch a position off (zero in every channel); the printout shows none here.
+# for an identity. The printout shows no switched-off (all-zero) positions here.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -282,8 +278,8 @@ assert torch.equal(course_backbone(final_relu=False)(x), before)
 # ## k-means initialisation and $\alpha$ on the course backbone
 #
 # As in the NetVLAD code, we sample local features of training images, L2-normalise them, run faiss k-means
-# and compute $\alpha$ with Eq. (6). `vpr_nb.aggregation.sample_local_descriptors` skips exactly-zero
-# features, which have no direction. `vpr_nb.models.init_netvlad` packages the same step.
+# and compute $\alpha$ with Eq. (6). The sampler skips exactly-zero features, which have no direction;
+# `init_netvlad` packages the same step.
 
 # %%
 KM = EXPERIMENT["netvlad"]["kmeans"]
@@ -334,14 +330,14 @@ plt.show()
 
 # %% [markdown]
 # **Figure 2.** The k-means-initialised NetVLAD on one training image: the image, each position's nearest
-# cluster $\arg\max_k \bar a_k$ (one colour per cluster), how decided the soft assignment (3) is, and the norm
-# of each residual sum $V_k$ (4) before intra-normalisation.
+# cluster (one colour per cluster), how decided the soft assignment (3) is, and the norm of each residual sum
+# $V_k$ (4) before intra-normalisation.
 
 # %% [markdown]
 # **Before or after the ReLU, measured.** The same k-means-initialised NetVLAD, nothing trained, reads the
 # frozen backbone after and before its last ReLU. The table gives test Recall@N and the mean pairwise cosine of
 # test database descriptors (near 1: all images look alike). References: raw
-# pixels and the frozen backbone with GeM (Eq. G, $p = 3$), also untrained.
+# pixels and the frozen backbone with GeM ($p = 3$), also untrained.
 
 # %%
 def untrained_netvlad(relu, seed=0):
@@ -376,12 +372,12 @@ for name, r in fixed.items():
 # Both models read the course backbone after its last ReLU, with its **last block trainable** (like NetVLAD's
 # conv5). A third row keeps the backbone **frozen** and trains only the NetVLAD layer. All rows
 # share the triplet pipeline of notebook 03 (best positive facing the same way, the 5 hardest of 300 random
-# negatives beyond 25 m, margin 0.1). They share the optimiser (Adam, lr $10^{-3}$, StepLR), the **number of
+# negatives beyond 25 m, margin 0.1), the optimiser (Adam, lr $10^{-3}$, StepLR), the **number of
 # epochs** and, per seed, the mining randomness. The
 # best model on validation Recall@1 is tested once. Descriptors: GeM 128-D, NetVLAD ($K = 16$)
-# $16 \cdot 128 = 2048$-D.
+# 2048-D.
 #
-# CI: one seed, one epoch. Committed results: 5 seeds, 8 epochs each. Notebooks 03 (0.858) and 05 (0.835)
+# CI: one seed, one epoch. Committed: 5 seeds, 8 epochs each. Notebooks 03 (0.858) and 05 (0.835)
 # train the NetVLAD row until validation stops improving; 03 also searches the lr.
 
 # %%
@@ -476,10 +472,9 @@ print(f"(the committed run took {res['seconds'] / 60:.1f} min wall time, torch o
 
 
 # %% [markdown]
-# **Verdicts.** Rows are paired by seed, and a difference counts only beyond 2 standard errors
-# (`vpr_nb.results.paired_verdict`); an untrained reference is repeated for every seed. A fine-tuned
-# baseline is compared against only if it beats its own start by more than 2 SE
-# (`vpr_nb.results.gated_verdict`). An untrained reference is itself such a control:
+# **Verdicts.** Rows are paired by seed, and a difference counts only beyond 2 standard errors; an untrained
+# reference is repeated for every seed. A fine-tuned baseline is compared against only if it beats its own
+# start by more than 2 SE. An untrained reference is itself such a control:
 
 # %%
 def r1(name):
@@ -527,10 +522,10 @@ plt.show()
 # %% [markdown]
 # ## What NetVLAD assigns where
 #
-# For three test queries we show each position's hard cluster ($\arg\max_k \bar a_k$) before and after
-# training, and the confidence $\max_k \bar a_k$. Positions that look alike (sky, road, a facade type) share a
+# For three test queries we show each position's hard cluster before and after training, and its largest
+# assignment weight. Positions that look alike (sky, road, a facade type) share a
 # cluster; training reshapes the clusters for retrieval. The trained model is the committed reproduce-profile
-# NetVLAD of seed 0 (`vpr_nb.trained_weights`), not the CI run.
+# NetVLAD of seed 0, not the CI run.
 
 # %%
 def assignments(model, images):
@@ -690,87 +685,69 @@ check("zero_image_descriptor", [Case(f"{k} random centroids of dimension {d}", (
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Hard vs soft.** Replace `soft_assign` by `hard_assign` inside `netvlad_by_hand`. Is the result still
+# 1. **Hard vs soft.** Use `hard_assign` instead of `soft_assign` in `netvlad_by_hand`. Is the result still
 #    differentiable with respect to the centroids? And to the $1\times1$ conv weights?
-#    <details><summary>Hint</summary>Call <code>.backward()</code> on the output's sum and see which
-#    <code>.grad</code> are zero or missing. An argmax has no gradient; a residual $x_i - c_k$ does.</details>
-# 2. **No intra-normalisation.** Drop the row-wise `F.normalize` of `vlad_by_hand` in a `NetVLAD` subclass
-#    and retrain. Which clusters dominate the descriptor now?
-#    <details><summary>Hint</summary>A cluster's block then has the norm of its residual sum, which grows with
-#    the features it receives. Print each block's norm for a few test images.</details>
+#    <details><summary>Hint</summary>Call <code>.backward()</code> on the output's sum. An argmax has no
+#    gradient; a residual does.</details>
+# 2. **No intra-normalisation.** Drop the intra-normalisation of `vlad_by_hand` in a `NetVLAD` subclass
+#    and retrain. Which clusters dominate now?
+#    <details><summary>Hint</summary>Print each block's norm for a few test images.</details>
 # 3. **The 100:1 rule.** Initialise with $\alpha$ ten times smaller and ten times larger than Eq. (6). How do
 #    the untrained test recall and the mean max assignment change?
-#    <details><summary>Hint</summary>After <code>init_netvlad</code>, scale the assignment weights
-#    $\alpha \hat c_k$ in <code>model.aggregator.conv</code>. The graded exercise counts the descriptors each α
-#    leaves soft.</details>
-# 4. **Before the ReLU.** Train `build_model(before_relu(1), "netvlad", num_clusters=K)` with `run`'s recipe.
+#    <details><summary>Hint</summary>Scale the conv weights after <code>init_netvlad</code>.</details>
+# 4. **Before the ReLU.** Train NetVLAD on `before_relu(1)` with `run`'s recipe.
 #    Does training close the gap of the untrained table?
-#    <details><summary>Hint</summary>Use the seeds and settings of <code>run</code>. Put its test R@1 beside
-#    the two k-means-init rows of the untrained table.</details>
+#    <details><summary>Hint</summary>Compare its test R@1 with the two k-means-init rows.</details>
 # 5. **vladv2.** Train with `vladv2=True` and `normalize_input=False`; Eq. (3) now holds exactly. Does it
 #    train better here?
-#    <details><summary>Hint</summary>The conv now has a bias, $-\alpha \lVert c_k \rVert^2$. First check on
-#    the toy vocabulary that the assignment is a softmax of $-\alpha \lVert x - c_k \rVert^2$.</details>
-# 6. **Budget.** NetVLAD's descriptor is 16× larger than GeM's. Reduce it to 128-D with PCA after training
-#    and compare recall at equal size.
-#    <details><summary>Hint</summary>Fit <code>faiss.PCAMatrix(2048, 128)</code> on the <em>training</em>
-#    database descriptors only. L2-normalise, then use <code>evaluate_descriptors</code>.</details>
+#    <details><summary>Hint</summary>The conv now has a bias, $-\alpha \|c_k\|^2$.</details>
+# 6. **Budget.** NetVLAD's descriptor is 16× larger than GeM's. Reduce it to 128-D with PCA and compare
+#    recall at equal size.
+#    <details><summary>Hint</summary>Fit the PCA on <em>training</em> database descriptors only, then
+#    L2-normalise.</details>
 #
 # ## Takeaways
 #
-# * BoW counts, VLAD sums residuals, and NetVLAD soft-assigns (a $1\times1$ conv + softmax, Eq. 3). NetVLAD
-#   learns centroids and assignment weights separately (Eq. 4). Three normalisations follow: each descriptor,
-#   each cluster, the whole vector. `vpr_nb.aggregation.NetVLAD` is one batched product and loads the public
-#   checkpoints.
-# * k-means gives the centroids; Eq. (6) makes each descriptor mostly vote for one cluster (100:1 on average
-#   of the log). This initialisation alone, untrained, retrieves about as well as the frozen backbone with GeM
-#   (R@1 0.758 vs 0.748).
-# * Which side of the last ReLU serves NetVLAD better depends on the backbone. The public code reads VGG16
-#   before its ReLU. The course backbone, pretrained with a local contrastive term on its
-#   features *before* the ReLU, gives NetVLAD a better start *after* it (0.758 vs 0.654). So the recipe reads
-#   its output. Zero features would hurt: each adds the same $-c_k/K$ to every image (the graded exercise).
+# * BoW counts, VLAD sums residuals, NetVLAD soft-assigns with learnable weights (Eqs. 3–4) and normalises
+#   three times.
+# * Initialised by k-means and Eq. (6), the untrained layer retrieves about as well as the frozen backbone
+#   with GeM (R@1 0.758 vs 0.748).
+# * The public code reads VGG16 before its ReLU. The course backbone, pretrained with a local contrastive term
+#   *before* the ReLU, gives NetVLAD a better start *after* it (0.758 vs 0.654), so the recipe reads its output.
 # * Fine-tuned with the same recipe and seeds, **NetVLAD beats GeM on this world**: +0.033 ± 0.010 R@1 over 5
-#   paired seeds, beyond 2 SE. The control passes: GeM gains +0.045 ± 0.009 over its frozen start. The NetVLAD
-#   paper reports the same order against the pooling of its day. Training the backbone's last block adds
-#   +0.052 ± 0.011 over the layer alone, which still beats its k-means start (+0.017 ± 0.003).
-# * A caveat: our backbone was pretrained with GeM, while the paper compared against max and average pooling
-#   of an ImageNet VGG16, on Pittsburgh, with 64 clusters.
-# * The live CI numbers are one epoch on one seed, a smoke test. Compare methods with the committed table
-#   and its verdicts.
+#   paired seeds, beyond 2 SE. The control passes: GeM gains +0.045 ± 0.009 over its frozen start. Training
+#   the backbone's last block adds +0.052 ± 0.011 over the layer alone, which still beats its k-means start
+#   (+0.017 ± 0.003).
+# * A caveat: our backbone was pretrained with GeM; the paper compared against max and average pooling of an
+#   ImageNet VGG16, on Pittsburgh, with 64 clusters.
+# * Compare methods with the committed table, not the live CI smoke test.
 
 # %% [markdown]
 # ## Self-check
 #
 # 1. What do BoW, VLAD and NetVLAD each keep of the descriptors assigned to a cluster?
-#    <details><summary>Answer</summary>BoW keeps their count, VLAD the sum of their residuals to the centroid
-#    (hard assignment). NetVLAD keeps the same sum with soft, learnable weights (Eqs. 3–4), then
-#    normalises.</details>
+#    <details><summary>Answer</summary>Their count; the sum of their residuals; that sum with soft, learnable
+#    weights (Eqs. 3–4).</details>
 # 2. What does Eq. (6) choose α for? Does it make every descriptor's assignment sharp?
-#    <details><summary>Answer</summary>It makes the best/second-best soft weight ratio 100 on average (of its
-#    log). Descriptors whose two nearest centroids are almost equally close stay soft.</details>
+#    <details><summary>Answer</summary>A best/second-best weight ratio of 100 on average. No: descriptors
+#    almost equidistant from two centroids stay soft.</details>
 # 3. The public NetVLAD code reads VGG16 before its last ReLU. Why does the course read its backbone after it?
-#    <details><summary>Answer</summary>It measured better here: the untrained, k-means-initialised layer
-#    reaches R@1 0.758 after the ReLU and 0.654 before it. Which side wins depends on the backbone.</details>
+#    <details><summary>Answer</summary>It measured better here (untrained R@1 0.758 vs 0.654). Which side
+#    wins depends on the backbone.</details>
 
 # %% [markdown]
 # ## References
 #
 # * R. Arandjelović, P. Gronát, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
-#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247); code:
-#   [github.com/Relja/netvlad](https://github.com/Relja/netvlad) (MATLAB),
-#   [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad) (PyTorch; `vpr_nb` follows its layer and
-#   checkpoints).
+#   place recognition.* CVPR 2016. <https://arxiv.org/abs/1511.07247>
 # * H. Jégou, M. Douze, C. Schmid, P. Pérez. *Aggregating local descriptors into a compact image
-#   representation* (VLAD). CVPR 2010. [doi:10.1109/CVPR.2010.5540039](https://doi.org/10.1109/CVPR.2010.5540039).
-# * R. Arandjelović, A. Zisserman. *All about VLAD* (intra-normalisation). CVPR 2013.
-#   [doi:10.1109/CVPR.2013.207](https://doi.org/10.1109/CVPR.2013.207).
-# * J. Sivic, A. Zisserman. *Video Google: a text retrieval approach to object matching in videos* (bag of
-#   visual words). ICCV 2003. [doi:10.1109/ICCV.2003.1238663](https://doi.org/10.1109/ICCV.2003.1238663).
-# * F. Radenović, G. Tolias, O. Chum. *Fine-tuning CNN image retrieval with no human annotation* (GeM, Eq. 3).
-#   TPAMI 2018. [arXiv:1711.02512](https://arxiv.org/abs/1711.02512); code:
-#   [github.com/filipradenovic/cnnimageretrieval-pytorch](https://github.com/filipradenovic/cnnimageretrieval-pytorch).
-# * K. Simonyan, A. Zisserman. *Very deep convolutional networks for large-scale image recognition* (VGG16).
-#   ICLR 2015. [arXiv:1409.1556](https://arxiv.org/abs/1409.1556).
-# * J. Johnson, M. Douze, H. Jégou. *Billion-scale similarity search with GPUs* (faiss: k-means and search).
-#   [arXiv:1702.08734](https://arxiv.org/abs/1702.08734); code:
-#   [github.com/facebookresearch/faiss](https://github.com/facebookresearch/faiss).
+#   representation.* CVPR 2010. <https://doi.org/10.1109/CVPR.2010.5540039>
+# * R. Arandjelović, A. Zisserman. *All about VLAD.* CVPR 2013. <https://doi.org/10.1109/CVPR.2013.207>
+# * J. Sivic, A. Zisserman. *Video Google: a text retrieval approach to object matching in videos.* ICCV 2003.
+#   <https://doi.org/10.1109/ICCV.2003.1238663>
+# * F. Radenović, G. Tolias, O. Chum. *Fine-tuning CNN image retrieval with no human annotation.* TPAMI 2018.
+#   <https://arxiv.org/abs/1711.02512>
+# * K. Simonyan, A. Zisserman. *Very deep convolutional networks for large-scale image recognition.*
+#   ICLR 2015. <https://arxiv.org/abs/1409.1556>
+# * J. Johnson, M. Douze, H. Jégou. *Billion-scale similarity search with GPUs.* arXiv 2017.
+#   <https://arxiv.org/abs/1702.08734>

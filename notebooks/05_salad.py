@@ -18,9 +18,9 @@
 # %% [markdown]
 # # 05 · SALAD: aggregation as optimal transport
 #
-# **Aim.** NetVLAD (notebook 04) gives each local feature a softmax over the clusters, on its own. SALAD
-# (Izquierdo & Civera, CVPR 2024) assigns *all* features to the clusters **jointly**, by optimal transport
-# solved with a few Sinkhorn iterations. A **dustbin** absorbs uninformative features. You will
+# **Aim.** NetVLAD (notebook 04) gives each local feature its own softmax over the clusters. SALAD
+# (Izquierdo & Civera, CVPR 2024) assigns *all* features **jointly**, by optimal transport solved with a few
+# Sinkhorn iterations; a **dustbin** absorbs uninformative features. You will
 #
 # * write log-space Sinkhorn from scratch on a toy matrix and check its marginals;
 # * derive SALAD's aggregation and check it against `vpr_nb.aggregation.SALAD`;
@@ -84,37 +84,36 @@ print(f"profile {PROFILE}: {RUN['methods']} methods, at most {RUN['max_epochs']}
 # %% [markdown]
 # ## Theory
 #
-# **Optimal transport.** $n$ local features send their mass to $m$ clusters. A score matrix
-# $S \in \mathbb{R}^{m \times n}$ says how well feature $i$ fits cluster $k$. A transport plan $P \ge 0$ has
-# row sums $a \in \mathbb{R}^m$ (what each cluster receives) and column sums $b \in \mathbb{R}^n$ (what each
-# feature gives). The best plan maximises the score plus an entropy term:
+# **Optimal transport.** $n$ local features send mass to $m$ clusters. Scores $S \in \mathbb{R}^{m \times n}$
+# say how well feature $i$ fits cluster $k$. A plan $P \ge 0$ has row sums $a$ (what each cluster receives)
+# and column sums $b$ (what each feature gives). The best plan maximises score plus entropy:
 #
-# $$P^\star = \arg\max_{P\,\mathbf{1} = a,\; P^\top \mathbf{1} = b} \;\langle P, S\rangle - \sum_{k,i} P_{ki}\,(\log P_{ki} - 1). \tag{1}$$
+# $$P^\star = \arg\max_{P\mathbf{1} = a,\, P^\top \mathbf{1} = b} \langle P, S\rangle - \sum_{k,i} P_{ki}(\log P_{ki} - 1). \tag{1}$$
 #
 # **Sinkhorn** (Cuturi, NeurIPS 2013). The solution is $P = \mathrm{diag}(e^{u})\, e^{S}\, \mathrm{diag}(e^{v})$.
 # Fitting rows and columns in turn gives, in log space for stability,
 #
-# $$u_k \leftarrow \log a_k - \log \sum_i e^{S_{ki} + v_i}, \qquad v_i \leftarrow \log b_i - \log \sum_k e^{S_{ki} + u_k}, \qquad \log P_{ki} = S_{ki} + u_k + v_i . \tag{2}$$
+# $$u_k \leftarrow \log a_k - \log \sum_i e^{S_{ki} + v_i}, \;\; v_i \leftarrow \log b_i - \log \sum_k e^{S_{ki} + u_k}, \;\; \log P_{ki} = S_{ki} + u_k + v_i . \tag{2}$$
 #
 # After a $v$ update the column sums are exact; the row sums converge geometrically.
 #
 # **The dustbin.** Forcing every feature into a cluster would also aggregate sky and road. SALAD appends a
-# row with one learned score $z$, $\bar S = [S; z\,\mathbf{1}^\top]$ of size $(m+1) \times n$, and asks
+# row with one learned score $z$, $\bar S = [S; z\mathbf{1}^\top]$, and asks
 #
-# $$a = [\underbrace{1, \dots, 1}_{m}, \; n - m], \qquad b = [\underbrace{1, \dots, 1}_{n}] \tag{3}$$
+# $$a = [\mathbf{1}_m, \, n - m], \qquad b = \mathbf{1}_n . \tag{3}$$
 #
-# Each feature gives mass 1, each cluster receives 1 and the dustbin the rest, so $n > m$ is needed. The
-# published code runs only **3 iterations**, with $a, b$ divided by $n+m$ (multiplied back at the end).
+# Each feature gives 1, each cluster receives 1 and the dustbin the rest, so $n > m$ is needed. The published
+# code runs only **3 iterations**, with $a, b$ divided by $n+m$ (multiplied back at the end).
 #
 # **SALAD.** From local features $x_i$ and a global token $t$, SALAD computes projected features
 # $f_i = \mathrm{MLP}_f(x_i) \in \mathbb{R}^{l}$, scores $s_i = \mathrm{MLP}_s(x_i) \in \mathbb{R}^m$, and the
-# plan $P$ of Eqs. (2)-(3) without its dustbin row. Then
+# plan $P$ of Eqs. (2)-(3) without its dustbin row. With no centroid residual, unlike NetVLAD,
 #
-# $$V_{\cdot k} = \sum_{i=1}^{n} P_{ki}\, f_i \in \mathbb{R}^{l} \quad\text{(no centroid residual, unlike NetVLAD's Eq. 4)}, \tag{4}$$
+# $$V_{\cdot k} = \sum_{i=1}^{n} P_{ki}\, f_i , \tag{4}$$
 #
-# $$\mathrm{SALAD}(x, t) = \mathrm{L2}\Big(\big[\, \mathrm{L2}(\mathrm{MLP}_g(t)),\; \mathrm{vec}\big(V_{\cdot 1}/\lVert V_{\cdot 1}\rVert, \dots, V_{\cdot m}/\lVert V_{\cdot m}\rVert\big)\big]\Big), \tag{5}$$
+# $$\mathrm{SALAD}(x, t) = \mathrm{L2}\big([\mathrm{L2}(\mathrm{MLP}_g(t)), \hat V_{\cdot 1}, \dots, \hat V_{\cdot m}]\big), \quad \hat V_{\cdot k} = V_{\cdot k}/\lVert V_{\cdot k}\rVert, \tag{5}$$
 #
-# of size $d_g + m \cdot l$ (8448 in the paper). Eq. (4) for all clusters is one product $F P^\top$.
+# of size $d_g + m \cdot l$ (8448 in the paper).
 
 # %% [markdown]
 # ## Build it: Sinkhorn with a dustbin, on a toy matrix
@@ -145,8 +144,8 @@ for iters in (1, 3, 100):
           f"cluster row sums {np.round(plan[:4].sum(1).numpy(), 3).tolist()}, dustbin row {plan[4].sum():.3f} (n - m = 8)")
 
 # %% [markdown]
-# After 100 iterations every marginal of Eq. (3) holds. After 3, the columns are exact and the rows close.
-# Figure 1 uses the library's `vpr_nb.aggregation.sinkhorn`, checked equal to `sinkhorn_by_hand` below:
+# After 100 iterations every marginal of Eq. (3) holds; after 3, the rows are close. Figure 1 uses the
+# library's Sinkhorn, checked equal to ours below:
 
 # %%
 iters_axis = np.arange(1, 31)
@@ -171,17 +170,15 @@ plt.show()
 
 
 # %% [markdown]
-# **Figure 1.** Toy scores, 4 clusters and 12 features. Left: a softmax over clusters (NetVLAD). Middle:
-# the Sinkhorn plan with a dustbin (last row) after 1 and 3 iterations. Right: the largest row marginal error
-# per iteration (log scale).
+# **Figure 1.** Toy scores, 4 clusters, 12 features. Left: a softmax over clusters (NetVLAD). Middle: the
+# Sinkhorn plan with a dustbin (last row) after 1 and 3 iterations. Right: the largest row marginal error.
 
 # %% [markdown]
-# The softmax lets one cluster take most features and others none. The transport plan gives each cluster
-# one unit of mass and the dustbin the rest.
+# The softmax lets one cluster take most features; the plan gives each cluster one unit and the dustbin the rest.
 #
-# **What does the dustbin score $z$ do?** The dustbin row of $\bar S$ is $z$ for every feature. The first
-# $u$ update of Eq. (2) subtracts $\log \sum_i e^{z + v_i}$ from that row, which removes $z$ again. So the
-# plan no longer depends on $z$, and $z$ gets no gradient. Measured:
+# **What does the dustbin score $z$ do?** The first $u$ update of Eq. (2) subtracts $\log \sum_i e^{z + v_i}$
+# from the dustbin row, which removes $z$ again. So the plan does not depend on $z$, and $z$ gets no gradient.
+# Measured:
 
 # %%
 for iters in (1, 3, 100):
@@ -195,8 +192,8 @@ grad = abs(z_param.grad.item())
 print("gradient of a loss on the 3-iteration plan with respect to z: " + ("below 1e-12" if grad < 1e-12 else f"{grad:.1e}"))
 
 # %% [markdown]
-# Both are zero up to rounding. The cluster scores alone decide what the dustbin takes: a feature that
-# scores low for every cluster goes there. A per-feature dustbin score ($m + 1$ score outputs) could learn.
+# Both are zero up to rounding: the cluster scores alone decide what the dustbin takes. A per-feature
+# dustbin score could learn.
 #
 # ## Build it: SALAD from the plan
 #
@@ -212,8 +209,8 @@ def salad_by_hand(f, s, g, z):
 
 # %% [markdown]
 # **The plan on an image.** A test query of the course's city world (generated here, used from now on)
-# goes through the course backbone and an untrained SALAD head with $m = 16$ clusters
-# (`vpr_nb.recipe.build_start`). Its $n = 8 \times 12 = 96$ positions get $16 \times 96$ scores and a plan:
+# goes through the course backbone and an untrained SALAD head, $m = 16$ (`vpr_nb.recipe.build_start`). Its
+# $n = 8 \times 12 = 96$ positions get a plan:
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -236,18 +233,17 @@ plots.plot_salad_plan(plan_query, plan_q, fmap_q.shape[2:])
 plt.show()
 
 # %% [markdown]
-# **Figure 2.** The plan on one test query, untrained, 3 iterations. Left: each position coloured by the
-# cluster that receives most of its mass; a cross marks positions giving the dustbin more than 0.83, its
-# uniform share. Right: the plan (log scale). Each cluster row receives about 1 and the dustbin row (bottom)
-# the other 80. The plan is near uniform, yet neighbouring positions of one surface (the road) often share a
-# cluster: the random score head already follows the image content.
+# **Figure 2.** The untrained plan on one test query, 3 iterations. Left: each position coloured by its main
+# cluster; a cross marks positions giving the dustbin more than 0.83, its uniform share. Right: the plan (log
+# scale); each cluster row receives about 1, the dustbin row (bottom) the other 80. It is near uniform, yet
+# neighbouring road positions often share a cluster: the random score head already follows the image.
 
 # %% [markdown]
 # ## Use `vpr_nb`: the same plan and descriptor from the library
 #
-# `vpr_nb.aggregation.sinkhorn` runs Eqs. (2)-(3) on a batch, and `vpr_nb.aggregation.SALAD` computes
-# Eq. (4) as one product $F P^\top$. Both must match the derivation, at the **paper's sizes** (8448-D).
-# Its state dict matches the published DINOv2-SALAD aggregator, whose weights load by name:
+# `vpr_nb.aggregation.sinkhorn` batches Eqs. (2)-(3); `vpr_nb.aggregation.SALAD` computes Eq. (4) as
+# $F P^\top$. Both must match the derivation at the **paper's sizes** (8448-D). The published DINOv2-SALAD
+# aggregator's weights load by name:
 
 # %%
 for iters in (1, 3, 100):
@@ -278,16 +274,15 @@ except ValueError as err:
 
 # %% [markdown]
 # ## The course backbone, and SALAD at initialisation
+# ## The course backbone, and SALAD at initialisation
 #
-# SALAD fine-tunes DINOv2's last blocks. Here the **course backbone** (`vpr_nb.pretrain.course_backbone`)
-# trains its **last block**. SALAD reads its output after the final ReLU: 96 local features of 128 channels,
-# and a global token from the mean feature. SALAD is scaled down to $m = 16$ clusters of $l = 32$ dimensions
-# plus a 64-D token: 576-D.
-#
-# Before any training we measure, on 64 test queries:
+# Here the **course backbone** (`vpr_nb.pretrain.course_backbone`) trains its **last block**. SALAD reads its
+# output after the final ReLU: 96 local features of 128 channels, and a global token from the mean feature.
+# Scaled down: $m = 16$ clusters of $l = 32$ dimensions plus a 64-D token, 576-D. Before training, on 64 test
+# queries:
 #
 # * **f cosine**: the mean cosine between two projected features $f_i$ of an image;
-# * **cluster cosine**: the same for two cluster vectors $V_{\cdot k}$ (1 = all identical);
+# * **cluster cosine**: the same for cluster vectors $V_{\cdot k}$ (1 = identical);
 # * **entropy / log m**: of each feature's mass over the clusters (1 = uniform);
 # * the dustbin's share, and the untrained test Recall@1.
 
@@ -375,29 +370,25 @@ for name, r in init_stats.items():
     print(f"{name:42s}" + "".join(f"{r[c]:17.3f}" for c in cols))
 
 # %% [markdown]
-# **Why SALAD starts collapsed.** After the ReLU all local features are non-negative and share a component
-# (mean cosine 0.243). SALAD sums the projected features themselves, with no centroid residual. So with the
-# published initialisation the shared component dominates every $f_i$ (f cosine close to 1). All cluster
-# vectors and all descriptors then look alike. NetVLAD escapes through its k-means start.
+# **Why SALAD starts collapsed.** After the ReLU the local features are non-negative and share a component
+# (mean cosine 0.243). SALAD sums them with no centroid residual, so with the published initialisation this
+# component dominates every $f_i$ (f cosine close to 1) and all descriptors look alike. NetVLAD escapes
+# through its k-means start.
 #
-# SALAD's analogue, `standardise_inputs`, rescales the first layer of the score and feature heads. They then
-# see each channel standardised with training statistics; the state dict keeps its keys. This halves the
-# f cosine. DINOv2's features, signed and diverse after a LayerNorm, need no such step.
-# The row "SALAD" below starts this way; "SALAD, paper init" trains the published start. On a random
-# SmallCNN (last row) the published start is just as collapsed.
+# SALAD's analogue, `standardise_inputs`, rescales the first layer of the score and feature heads so they see
+# standardised channels. This halves the f cosine. The row "SALAD" below starts this
+# way; "SALAD, paper init" trains the published start. On a random SmallCNN (last row) that start is just as
+# collapsed.
 
 # %% [markdown]
 # ## Experiment: GeM, NetVLAD and SALAD, at their usual sizes and at equal size
 #
-# Every row fine-tunes the last block with the **course recipe** (`vpr_nb.recipe.RECIPE`, notebook 03) at
-# lr $10^{-3}$. A run stops 4 epochs after its best validation Recall@1; that epoch is tested. Seeds 0–4 are
-# paired.
+# Every row fine-tunes the last block with the **course recipe** (notebook 03) at
+# lr $10^{-3}$, stopping 4 epochs after its best validation Recall@1 (that epoch is tested). Seeds 0–4 are paired.
 #
 # * **Usual sizes**: GeM (128-D), NetVLAD-16 (2048-D), SALAD (576-D).
-# * **Equal size, 512-D**: NetVLAD-4 and SALAD-4 (4 clusters each), so only the assignment and what is
-#   summed differ.
-# * **Ablations**: SALAD's published initialisation, and the paper's Multi-Similarity loss on P × K place
-#   batches (also for GeM).
+# * **Equal size, 512-D**: NetVLAD-4 and SALAD-4, so only the assignment and what is summed differ.
+# * **Ablations**: SALAD's published initialisation; the paper's Multi-Similarity loss on P × K place batches.
 #
 # CI runs one epoch and one seed; the committed results use 5 seeds. The same NetVLAD-16 row reads 0.827
 # in 04 (8 fixed epochs) and 0.858 in 03 (lr searched per row).
@@ -487,8 +478,8 @@ print(f"(the committed runs took {res['seconds'] / 60:.1f} min wall time in 2 pr
 
 
 # %% [markdown]
-# **Verdicts.** A paired difference counts only beyond 2 standard errors. First the controls: does each
-# fine-tune beat its own start? A comparison against a fine-tuned row needs that row's control to pass.
+# **Verdicts.** A paired difference counts only beyond 2 standard errors, and against a fine-tuned row only
+# if that row's control (beating its own start) passes.
 
 # %%
 def r1(name):
@@ -535,13 +526,12 @@ for m in rows:
 
 # %% [markdown]
 # **Figure 3.** Validation Recall@1 per epoch (reproduce profile), averaged over the seeds still training.
-# Dashed: the equal-size and Multi-Similarity rows. Below: the selected epoch per seed.
+# Dashed: equal-size and Multi-Similarity rows. Below: the selected epoch per seed.
 
 # %% [markdown]
 # ## Is the trained plan non-uniform?
 #
-# The same plan statistics, before and after training. A uniform plan keeps cluster cosine and entropy / log m
-# at 1.
+# The same plan statistics after training. A uniform plan keeps cluster cosine and entropy / log m at 1.
 
 # %%
 STATS = ("f cosine", "cluster cosine", "entropy / log m", "dustbin share")
@@ -567,8 +557,7 @@ stats_table(f"committed reproduce profile (mean ± std over seeds {SEEDS})", row
 # %% [markdown]
 # ## What the trained SALAD keeps and discards
 #
-# The committed trained SALAD (seed 0) on three test queries. Per position: the dustbin's share (1 =
-# discarded), the main cluster, and the entropy over clusters (divided by $\log m$).
+# The committed trained SALAD (seed 0) on three test queries:
 
 # %%
 salad_model = load_trained(committed, "salad-seed0", start0).eval()     # start0: the recipe's SALAD start, seed 0
@@ -619,13 +608,10 @@ record("05_salad", {
 # %% [markdown]
 # ## Why SALAD does not win here: a probe of the local features
 #
-# SALAD needs *diverse* local features to share out. `vpr_nb.probes` measures two things:
-#
-# * the **effective dimension**, $(\sum_k \lambda_k)^2 / \sum_k \lambda_k^2$ over the eigenvalues $\lambda_k$
-#   of the features' centred covariance (128: isotropic, 1: a line);
-# * the **within-image cosine** of two features of one image (a shared component pushes it towards 1).
-#
-# Then a frozen NetVLAD with more and more clusters: what does a finer assignment add?
+# SALAD needs *diverse* local features. `vpr_nb.probes` measures the **effective dimension**
+# $(\sum_k \lambda_k)^2 / \sum_k \lambda_k^2$ over the eigenvalues of the features' centred covariance (128:
+# isotropic, 1: a line) and the **within-image cosine** of two features of one image. Then a frozen NetVLAD
+# with more and more clusters: what does a finer assignment add?
 
 # %%
 with torch.no_grad():
@@ -661,11 +647,10 @@ for name, r in SWEEP.items():
     print(f"{name:20s}{r['dim']:6d}" + "".join(f"{r[f'R@{n}']:8.3f}" for n in NS))
 
 # %% [markdown]
-# The features are diverse: about 69 effective dimensions of 128, and a within-image cosine of 0.29.
-# Frozen, recall rises with the clusters: NetVLAD-2 is far below GeM, NetVLAD-16 level with it. So the
-# features are not what holds SALAD back. Its score head starts random (start R@1 about 0.42, NetVLAD's
-# k-means start 0.75). Training leaves its plan close to uniform (entropy / log m 0.99 → 0.96, cluster cosine
-# 0.99 → 0.77). A tiny city gives the heads too few places to learn an assignment.
+# The features are diverse (about 69 effective dimensions of 128, within-image cosine 0.29), and frozen
+# recall rises with the clusters. SALAD's heads are the limit: its score head starts random (start R@1 about
+# 0.42, NetVLAD's k-means start 0.75) and its plan stays near uniform (entropy / log m 0.99 → 0.96, cluster
+# cosine 0.99 → 0.77). A tiny city gives too few places to learn an assignment.
 
 # %% [markdown]
 # ## Graded exercise: Eq. (4) without intra-normalisation
@@ -804,78 +789,71 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 #
 # 1. **Iterations.** Train SALAD with 1 and with 10 Sinkhorn iterations (`salad_aggregate(..., num_iters=k)`).
 #    Does the exact marginal matter for Recall?
-#    <details><summary>Hint</summary>Check Figure 1's error curve, then compare paired seeds.</details>
+#    <details><summary>Hint</summary>Figure 1's error curve; paired seeds.</details>
 # 2. **No dustbin.** Set the dustbin score to $-\infty$ (and $a = [n/m, \dots]$). Where do sky and road go?
-#    <details><summary>Hint</summary>Plot a test image's plan as in Figure 4.</details>
+#    <details><summary>Hint</summary>Plot a plan as in Figure 4.</details>
 # 3. **Temperature.** Multiply the toy scores by 10 and by 0.1. How many iterations reach a row error of
 #    $10^{-4}$?
-#    <details><summary>Hint</summary>Reuse <code>row_err</code>; larger scores mean a harder plan.</details>
+#    <details><summary>Hint</summary>Reuse <code>row_err</code>.</details>
 # 4. **Token or clusters?** Retrain SALAD with a tiny `token_dim`, then a tiny `cluster_dim`. Which part
 #    carries the performance?
-#    <details><summary>Hint</summary>Override <code>SALAD_SIZE</code>; keep recipe and seeds.</details>
+#    <details><summary>Hint</summary>Override <code>SALAD_SIZE</code> in a new cell.</details>
 # 5. **Equal size, larger.** Compare SALAD and NetVLAD-16 at 2048-D (`cluster_dim` 124). Does the order change?
-#    <details><summary>Hint</summary>Use <code>search_methods</code> and <code>results.gated_verdict</code>.</details>
+#    <details><summary>Hint</summary><code>search_methods</code>, <code>results.gated_verdict</code>.</details>
 # 6. **Centre or scale?** Fold only the centring of `standardise_inputs`, then only the scaling. Which removes
 #    the collapse?
-#    <details><summary>Hint</summary>Set <code>sd</code> to ones, then <code>mu</code> to zeros; watch f cosine.</details>
+#    <details><summary>Hint</summary>Ones for <code>sd</code>, then zeros for <code>mu</code>.</details>
 # 7. **A k-means score head.** Initialise the score head's last layer from k-means centroids, as
 #    `init_netvlad` does. Does SALAD's start R@1 rise?
-#    <details><summary>Hint</summary>Use <code>vpr_nb.aggregation.kmeans_centroids</code>.</details>
+#    <details><summary>Hint</summary><code>vpr_nb.aggregation.kmeans_centroids</code>.</details>
 #
 # ## Takeaways
 #
-# * Sinkhorn alternates row and column normalisations in log space (Eq. 2). The dustbin discards features
-#   and needs $n > m$. Its single score $z$ cancels, so the cluster scores alone decide what it takes.
-# * SALAD sums projected features under the plan, without centroid residuals, and adds a global token
-#   (Eqs. 4-5).
+# * Sinkhorn alternates row and column normalisations in log space (Eq. 2). The dustbin's score $z$ cancels.
+# * SALAD sums projected features under the plan, with no centroid residual, plus a global token (Eqs. 4-5).
 # * **With the published initialisation SALAD starts collapsed here**: f cosine 0.92, cluster cosine 1.000.
-#   Standardising its inputs spreads the features (f cosine 0.46). Training escapes either way: the
-#   paper-init row ends level (+0.018 ± 0.021, within 2 SE).
-# * **At their usual sizes NetVLAD-16 leads, GeM is second and SALAD third**: NetVLAD − GeM = +0.041 ± 0.006,
-#   SALAD − GeM = −0.052 ± 0.015. Every triplet-trained row beats its start.
-#   NetVLAD above GeM is the literature's order; SALAD's place is not.
-# * **At equal size NetVLAD-4 beats SALAD-4** (−0.038 ± 0.010): the assignment matters. More clusters help
-#   NetVLAD (+0.052 ± 0.013) but not SALAD (within 2 SE).
-# * **The features are diverse, SALAD's learned plan is not.** A frozen NetVLAD gains from 2 to 16 clusters
-#   (0.657 → 0.758). SALAD's random score head starts at R@1 0.42, and its trained plan stays near uniform
-#   (entropy 0.96 of $\log m$).
-# * The Multi-Similarity loss trains SALAD level with triplets and sharpens its plan most (entropy 0.86). It
-#   never moves GeM from its start (best epoch 0).
-# * The live CI numbers are a smoke test; compare methods with the committed tables.
+#   Standardised inputs give f cosine 0.46. Either start trains level (+0.018 ± 0.021).
+# * **At usual sizes NetVLAD-16 leads, then GeM, then SALAD**: NetVLAD − GeM = +0.041 ± 0.006,
+#   SALAD − GeM = −0.052 ± 0.015. Every triplet-trained row beats its start. SALAD's place is not the
+#   literature's.
+# * **At equal size NetVLAD-4 beats SALAD-4** (−0.038 ± 0.010). More clusters help NetVLAD (+0.052 ± 0.013),
+#   not SALAD.
+# * **The features are diverse, SALAD's plan is not.** A frozen NetVLAD gains from 2 to 16 clusters
+#   (0.657 → 0.758); SALAD's score head starts at R@1 0.42 and its trained plan stays near uniform (entropy
+#   0.96 of $\log m$).
+# * The Multi-Similarity loss trains SALAD level with triplets and sharpens its plan most (entropy 0.86); GeM
+#   never leaves its start (best epoch 0).
+# * Compare methods with the committed tables, not the live CI numbers.
 
 # %% [markdown]
 # ## Self-check
 #
 # 1. After one Sinkhorn iteration, which marginals of Eq. (3) hold exactly, and which only approximately?
-#    <details><summary>Answer</summary>The column sums hold after every $v$ update. The row sums converge
-#    geometrically: after 3 iterations they are close, not exact.</details>
+#    <details><summary>Answer</summary>The column sums, exactly; the row sums converge geometrically.</details>
 # 2. Why does the dustbin need more features than clusters, $n > m$?
-#    <details><summary>Answer</summary>Each feature gives 1 and each cluster receives 1, so the dustbin
-#    receives $n - m$. With $n \le m$ the marginals are infeasible.</details>
+#    <details><summary>Answer</summary>It receives $n - m$; with $n \le m$ the marginals are infeasible.</details>
 # 3. Why does SALAD's published start collapse on the course backbone, and what removes it?
-#    <details><summary>Answer</summary>The non-negative features share a component and no centroid residual
-#    removes it, so the cluster vectors are identical. Standardising the inputs spreads them. Training from
-#    the published start also escapes, and both end level.</details>
+#    <details><summary>Answer</summary>A shared component of the non-negative features, not removed by a
+#    centroid residual. Standardising the inputs, or training itself.</details>
 
 # %% [markdown]
 # ## References
 #
-# * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (DINOv2-SALAD).
-#   CVPR 2024. [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code:
-#   [github.com/serizba/salad](https://github.com/serizba/salad).
+# * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition.* CVPR 2024.
+#   <https://arxiv.org/abs/2311.15937>; code: <https://github.com/serizba/salad>.
 # * M. Cuturi. *Sinkhorn Distances: Lightspeed Computation of Optimal Transport.* NeurIPS 2013.
-#   [arXiv:1306.0895](https://arxiv.org/abs/1306.0895).
+#   <https://arxiv.org/abs/1306.0895>.
 # * P.-E. Sarlin, D. DeTone, T. Malisiewicz, A. Rabinovich. *SuperGlue: Learning Feature Matching with Graph
-#   Neural Networks* (log-space Sinkhorn with a dustbin). CVPR 2020. [arXiv:1911.11763](https://arxiv.org/abs/1911.11763).
+#   Neural Networks.* CVPR 2020. <https://arxiv.org/abs/1911.11763>.
 # * M. Oquab et al. *DINOv2: Learning Robust Visual Features without Supervision.* TMLR 2024.
-#   [arXiv:2304.07193](https://arxiv.org/abs/2304.07193).
+#   <https://arxiv.org/abs/2304.07193>.
 # * R. Arandjelović, P. Gronát, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
-#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247).
-# * F. Radenović, G. Tolias, O. Chum. *Fine-tuning CNN image retrieval with no human annotation* (GeM).
-#   TPAMI 2018. [arXiv:1711.02512](https://arxiv.org/abs/1711.02512).
+#   place recognition.* CVPR 2016. <https://arxiv.org/abs/1511.07247>.
+# * F. Radenović, G. Tolias, O. Chum. *Fine-tuning CNN image retrieval with no human annotation.* TPAMI 2018.
+#   <https://arxiv.org/abs/1711.02512>.
 # * X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott. *Multi-Similarity Loss with General Pair Weighting for Deep
-#   Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627).
-# * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition*
-#   (P places × K images batches). Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239).
-# * I. Loshchilov, F. Hutter. *Decoupled Weight Decay Regularization* (AdamW). ICLR 2019.
-#   [arXiv:1711.05101](https://arxiv.org/abs/1711.05101).
+#   Metric Learning.* CVPR 2019. <https://arxiv.org/abs/1904.06627>.
+# * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place
+#   Recognition.* Neurocomputing 2022. <https://arxiv.org/abs/2210.10239>.
+# * I. Loshchilov, F. Hutter. *Decoupled Weight Decay Regularization.* ICLR 2019.
+#   <https://arxiv.org/abs/1711.05101>.

@@ -97,8 +97,8 @@ print(f"profile {PROFILE}: fine-tuning seeds {RUN['seeds']}, at most {RUN['max_e
 #
 # $$p(d_1, d_2) \approx \Phi\!\left(\frac{\mu_1 - \mu_2}{\sqrt{\sigma_1^2 + \sigma_2^2}}\right), \tag{3}$$
 #
-# and empirically $p = \frac{1}{n_1 n_2} \sum_{x \in B_1} \sum_{y \in B_2} \big([y < x] + \tfrac12 [y = x]\big)$.
-# What matters is the gap between means *relative to the spread*.
+# or, without the Gaussian, counted (graded exercise). What matters is the gap between means *relative to
+# the spread*.
 #
 # **The slope is not scale-free.** Scaling every descriptor distance changes $s$ but no ranking, so no $p$.
 # *If* the profile were a line with one spread $\bar\sigma$ in the fit range
@@ -387,8 +387,8 @@ plt.show()
 # %% [markdown]
 # **Figure 2.** GDS on the route test split (live run). Left: each model's profile, mean ± 1 std, with the
 # fit of Eq. (2). Middle: $p(0, d_2)$ of Eq. (3). Right: $p(d_1, d_2)$ for the triplet model (red: the
-# farther image usually wins). Here the MS arm kept its epoch-0 weights (its validation R@1 only fell), so
-# the green MS line hides the orange frozen one.
+# farther image usually wins). The MS arm kept its epoch-0 weights, so its green line hides the orange
+# frozen one.
 
 # %% [markdown]
 # **Reading the numbers** (the committed table, controls, verdicts and printed curves).
@@ -400,10 +400,8 @@ plt.show()
 # * *Close, but not there: here, rarely.* The caps of Eq. (5) sit far above every R@1 (triplets: 0.956 vs
 #   0.802), and most wrong top-1s are far away (printed above Figure 3).
 # * *The batches decide.* Asking images 20 m apart to look alike hurts where 20 m changes the view.
-#   CliqueMining (notebook 07) batches nearby places that look alike.
-# * *The slope is neither scale-free nor linear.* The bin means are curved: raw pixels flatten after 5 m,
-#   the frozen backbone after 15 m. The line of Eq. (4) overestimates $p(0, 10)$: 0.413 against 0.167 for
-#   raw pixels, 0.277 against 0.022 for triplets (0.031 empirically).
+# * *The slope is neither scale-free nor linear.* Raw pixels flatten after 5 m, the frozen backbone after
+#   15 m, so Eq. (4) overestimates $p(0, 10)$ (see Takeaways).
 
 # %% [markdown]
 # ## Pick a query
@@ -567,31 +565,25 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 #
 # 1. **Bin width.** Recompute a profile with `bin_width=2.5`. Why does every other bin empty out? Why does
 #    the notebook use $0.96 \times$ the frame spacing?
-#    <details><summary>Hint</summary>Route pair distances are multiples of the frame spacing (list
-#    <code>np.unique(np.round(geo, 3))</code>). Which bins can they fall in? What does a bin edge exactly on
-#    a multiple do with rounding errors?</details>
+#    <details><summary>Hint</summary>Pair distances are multiples of 5 m. Where does a rounding error put a
+#    pair on a bin edge?</details>
 # 2. **Gaussian vs empirical.** Compare `misordering_matrix(prof_t, grid, "gaussian")` with the
 #    `"empirical"` version. Where does Eq. (3) fail, and why?
-#    <details><summary>Hint</summary>Skewness near 0 m: plot the 0 m and 10 m histograms
-#    (<code>keep_pairs=True</code>). Distances cannot go below 0.</details>
+#    <details><summary>Hint</summary>Distances cannot go below 0: look at the 0 m histogram's
+#    skew.</details>
 # 3. **Check Eq. (5).** For the fine-tuned model, count the queries where neither 10 m negative beats the
 #    0 m positive. Compare their fraction with $(1 - p(0, 10))^2$.
-#    <details><summary>Hint</summary>For a query at frame $i$, the positive is database frame $i$ and the
-#    negatives are frames $i \pm 2$. Your <code>r1_cap</code> gives the prediction.</details>
+#    <details><summary>Hint</summary>Query frame $i$: positive $i$, negatives $i \pm 2$.</details>
 # 4. **City, heading-consistent pairs.** Profile the frozen backbone on the `city` world (`pos_radius` 25 m,
 #    `bin_width=5`) with same-heading pairs only. Add `1e6 * (heading // 90)` to the easting passed to
 #    `gds_profile`. What does mixing headings do to the 0 m bin?
-#    <details><summary>Hint</summary>Use <code>make_dataset("city", seed=0)</code>; shift database and
-#    queries. At 0 m a mixed profile includes pairs that share no content.</details>
+#    <details><summary>Hint</summary>Shift database and queries alike.</details>
 # 5. **Scale.** Multiply the raw-pixel descriptors by 10 (no re-normalising). Which changes, the slope or
 #    $p(0, 10)$, and why does Eq. (4) predict it?
-#    <details><summary>Hint</summary>Pass <code>10 * desc["raw pixels"]["db"]</code> (and the queries) to
-#    <code>gds_profile</code>. How do $\mu_b$, $\sigma_b$ and $s$ scale? Put them into Eqs. (3) and
-#    (4).</details>
+#    <details><summary>Hint</summary>How do $\mu_b$, $\sigma_b$ and $s$ scale?</details>
 # 6. **Pairs = "all".** Profile the database against itself (`pairs="all"`). How does the curve differ from
 #    summer-vs-winter pairs?
-#    <details><summary>Hint</summary>Call <code>gds_profile(db, db_utm, ..., pairs="all")</code>. Does the
-#    0 m bin hold each image paired with itself (distance 0)? Check its count.</details>
+#    <details><summary>Hint</summary>Check the 0 m bin's count.</details>
 #
 # ## Takeaways
 #
@@ -609,34 +601,28 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 # ## Self-check
 #
 # 1. Why does this notebook lead with the mis-ordering probability rather than the GDS slope?
-#    <details><summary>Answer</summary>Retrieval only ranks, and a ranking depends on the gap between bin
-#    means relative to their spread (Eq. 3). One slope misses the curvature at small distances.</details>
+#    <details><summary>Answer</summary>Ranking depends on the gap between means relative to the spread
+#    (Eq. 3); a slope is not scale-free and misses the curvature.</details>
 # 2. On the route, why can Recall@1 stay low for a descriptor that recognises the area well?
-#    <details><summary>Answer</summary>Positives are one frame wide; frames 10 m away are negatives. If
-#    those look as similar, rank 1 fails though the top-5 is in the right area: Eq. (5) caps R@1 near
-#    $(1 - p(0, 10))^2$. (Here the caps do not bind: compare each with its R@1.)</details>
+#    <details><summary>Answer</summary>Frames 10 m away are negatives; if they look as similar, rank 1
+#    fails (Eq. 5).</details>
 # 3. Why does a profile on the city world need heading-consistent pairs?
-#    <details><summary>Answer</summary>Each spot is photographed in 4 headings. Images at one spot facing
-#    different ways share no content, so mixing them corrupts the small-distance bins.</details>
+#    <details><summary>Answer</summary>Images at one spot facing different ways share no content.</details>
 
 # %% [markdown]
 # ## References
 #
 # * S. Izquierdo, J. Civera. *Close, But Not There: Boosting Geographic Distance Sensitivity in Visual Place
-#   Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422); code:
-#   [github.com/serizba/cliquemining](https://github.com/serizba/cliquemining) (no GDS code; `vpr_nb.gds`
-#   defines it).
+#   Recognition.* ECCV 2024. [arXiv:2407.02422](https://arxiv.org/abs/2407.02422).
 # * S. Izquierdo, J. Civera. *Optimal Transport Aggregation for Visual Place Recognition* (SALAD). CVPR 2024.
-#   [arXiv:2311.15937](https://arxiv.org/abs/2311.15937); code: [github.com/serizba/salad](https://github.com/serizba/salad).
+#   [arXiv:2311.15937](https://arxiv.org/abs/2311.15937).
 # * R. Arandjelović, P. Gronat, A. Torii, T. Pajdla, J. Sivic. *NetVLAD: CNN architecture for weakly supervised
-#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247) (the triplet mining);
-#   code: [github.com/Nanne/pytorch-NetVlad](https://github.com/Nanne/pytorch-NetVlad).
+#   place recognition.* CVPR 2016. [arXiv:1511.07247](https://arxiv.org/abs/1511.07247).
 # * X. Wang, X. Han, W. Huang, D. Dong, M. R. Scott. *Multi-Similarity Loss with General Pair Weighting for
-#   Deep Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627); code:
-#   [github.com/MalongTech/research-ms-loss](https://github.com/MalongTech/research-ms-loss),
-#   [github.com/KevinMusgrave/pytorch-metric-learning](https://github.com/KevinMusgrave/pytorch-metric-learning).
+#   Deep Metric Learning.* CVPR 2019. [arXiv:1904.06627](https://arxiv.org/abs/1904.06627).
 # * A. Ali-bey, B. Chaib-draa, P. Giguère. *GSV-Cities: Toward Appropriate Supervised Visual Place Recognition.*
-#   Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239); code:
-#   [github.com/amaralibey/gsv-cities](https://github.com/amaralibey/gsv-cities).
+#   Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239).
 # * N. Sünderhauf, P. Neubert, P. Protzel. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
-#   All Four Seasons.* ICRA 2013 Workshop (the Nordland dataset the `route` world imitates).
+#   All Four Seasons.* ICRA 2013 Workshop (Nordland).
+#
+# Code links: `docs/notes/06_gds.md`.
