@@ -13,8 +13,8 @@ from vpr_nb.training import TrainConfig, make_optimizer
 # The fingerprint of the pinned kernels with torch 2.13.0 on x86-64, recorded on an AMD EPYC. (On an Intel Xeon the
 # native kernels trained other NetVLAD and SALAD rows; the pinned ones gave these rows' bits while oneDNN still
 # ran the convolutions, and the convolutions' own hashes without oneDNN were equal on both.)
-PINNED_FINGERPRINT = {"render": "c36f5ce5cd2919bf", "features": "c8812f8c02abb5d2", "kmeans": "e596a08891f84160",
-                      "search": "8445c3bda879edef", "netvlad": "ea8c15eab8db26bb", "salad": "4025595ba05635fd"}
+PINNED_FINGERPRINT = {"render": "c36f5ce5cd2919bf", "features": "3353aa044943d204", "kmeans": "e385dd85c75faf86",
+                      "search": "8f99548501f57c5e", "netvlad": "51539dd49d2ce43f", "salad": "b2880f0f1e55b9c6"}
 FINGERPRINT_BACKBONE = "b561b563a1cbb616cc1bb3813e113de089ea41b5119b884ba0ec5840e5c662eb"   # its card's sha256
 
 
@@ -90,13 +90,34 @@ def test_the_pinned_fingerprint_is_the_recorded_one():
     import json
 
     got = json.loads(_python(code, kernels.pinned_environ()).strip().splitlines()[-1])
-    l1d = kernels.l1d_per_thread()
-    hint = ("" if l1d is None or l1d >= kernels.NNPACK_ONE_BLOCK_L1D else
-            f"; this processor has {l1d // 1024} KiB of L1 data cache per hardware thread, so NNPACK sums the "
-            f"backbone's 1x1 projection in two blocks (vpr_nb.kernels.apply_in_process)")
     assert got == PINNED_FINGERPRINT, (
         f"the pinned CPU kernels give other numbers on this machine ({kernels.processor_name()}): {got}; "
-        f"the notebooks' stored trained numbers will differ here{hint}")
+        f"the notebooks' stored trained numbers will differ here")
+
+
+def test_pinned_maps_and_descriptors_do_not_depend_on_the_batch_or_the_threads():
+    # no NNPACK and no oneDNN: a convolution is an unfold and one product per image, the 1x1 layers one product
+    # over rows (vpr_nb.pointwise), so an image's map is the same bits in a batch of 1 or of 112
+    from vpr_nb.models import build_model
+    from vpr_nb.pretrain import course_backbone
+
+    assert not torch._C._get_nnpack_enabled() and not torch.backends.mkldnn.enabled
+    x = torch.rand(112, 3, 32, 48, generator=torch.Generator().manual_seed(0))
+    threads = torch.get_num_threads()
+    try:
+        for aggregator in ("netvlad", "gem", "salad"):
+            model = build_model(course_backbone(trainable_blocks=1), aggregator).eval()
+            with torch.no_grad():
+                torch.set_num_threads(1)
+                maps, full = model.backbone(x), model(x)
+                for b in (1, 5, 16):
+                    assert torch.equal(torch.cat([model.backbone(x[i:i + b]) for i in range(0, 112, b)]), maps)
+                    if aggregator != "salad":     # SALAD's token MLP is an MKL product over the batch's tokens
+                        assert torch.equal(torch.cat([model(x[i:i + b]) for i in range(0, 112, b)]), full)
+                torch.set_num_threads(2)
+                assert torch.equal(model(x), full), aggregator
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_l1d_per_thread_reads_sysfs(tmp_path):
@@ -107,12 +128,12 @@ def test_l1d_per_thread_reads_sysfs(tmp_path):
             (d / name).write_text(value + "\n")
 
     cache(0, "1", "Instruction", "32K", "0,8")
-    cache(1, "1", "Data", "32K", "0,8")          # 32 KiB shared by two hyper-threads: NNPACK's two blocks
+    cache(1, "1", "Data", "32K", "0,8")          # 32 KiB shared by two hyper-threads
     cache(2, "2", "Unified", "1024K", "0,8")
-    assert kernels.l1d_per_thread(str(tmp_path)) == 16 * 1024 < kernels.NNPACK_ONE_BLOCK_L1D
+    assert kernels.l1d_per_thread(str(tmp_path)) == 16 * 1024
     (tmp_path / "cache" / "index1" / "size").write_text("48K\n")
     (tmp_path / "cache" / "index1" / "shared_cpu_list").write_text("0-1\n")
-    assert kernels.l1d_per_thread(str(tmp_path)) == kernels.NNPACK_ONE_BLOCK_L1D
+    assert kernels.l1d_per_thread(str(tmp_path)) == 24 * 1024
     (tmp_path / "cache" / "index1" / "size").write_text("garbage\n")
     assert kernels.l1d_per_thread(str(tmp_path)) is None
     assert kernels.l1d_per_thread(str(tmp_path / "missing")) is None

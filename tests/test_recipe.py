@@ -14,6 +14,7 @@ from vpr_nb.models import build_model, init_salad
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.recipe import (RECIPE, Method, Recipe, build_start, fine_tune, lr_search, make_source, place_batch_labels,
                            search_methods)
+from vpr_nb.recipe.search import ladder_step
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import History, PlaceBatchSource, TrainConfig, TripletSource, train
 
@@ -175,7 +176,7 @@ def test_lr_search_refuses_a_small_validation_split_on_one_seed(world):
 @pytest.mark.slow
 def test_lr_search_picks_the_best_grid_point_on_validation(world):
     tr, va = world
-    recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3, 1.0), search_seeds=2)
+    recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3, 1.0), search_seeds=2, lr_extend=0)
     cache = FrozenFeatureCache()
     search = lr_search(Method("GeM", "gem", paper_lr=1e-4), tr, va, recipe, seeds=(0, 1, 2), cache=cache)
     assert search.grid == (1e-4, 1e-3, 1.0)
@@ -192,10 +193,39 @@ def test_lr_search_picks_the_best_grid_point_on_validation(world):
     for (k, x), (_, y) in zip(alone.model.state_dict().items(), search.runs[2].model.state_dict().items()):
         assert torch.equal(x, y), k
     assert cache.resets == 0 and cache.hits > cache.misses              # one cache for all seven runs
-    assert "<- chosen" in search.table() and "mean over seeds [0, 1])" in search.table()
+    assert "<- chosen" in search.table() and "mean over seeds [0, 1]; grid" in search.table()
     # a validation split of min_val_queries queries lets one seed choose
     one = fine_tune(Method("GeM", "gem"), tr, va, dataclasses.replace(recipe, min_val_queries=len(va.q_images)), 0)
     assert one.lr in recipe.lr_grid and one.search.seeds == (0,)
+
+
+def test_ladder_steps_of_the_lr_grid():
+    assert ladder_step(3e-4, up=True) == 1e-3 and ladder_step(1e-3, up=True) == 3e-3
+    assert ladder_step(1e-4, up=False) == 3e-5 and ladder_step(3e-5, up=False) == 1e-5
+    assert ladder_step(2e-4, up=True) == 3e-4 and ladder_step(2e-4, up=False) == 1e-4
+    with pytest.raises(ValueError, match="lr"):
+        ladder_step(0.0, up=True)
+
+
+@pytest.mark.slow
+def test_halving_stops_the_worse_half_and_the_grid_grows_until_the_choice_is_interior(world):
+    tr, va = world
+    recipe = dataclasses.replace(FAST, max_epochs=3, patience=3, lr_grid=(1e-4, 1e-3, 1e-2), search_seeds=1,
+                                 halving_epochs=1, lr_extend=2, min_val_queries=0)
+    search = lr_search(Method("GeM", "gem"), tr, va, recipe, seeds=(0,))
+    assert sum(lr in recipe.lr_grid for lr in search.halved) == 1                 # ceil(3 / 2) = 2 train on
+    assert set(search.halved.values()) == {1} and set(search.halved) <= set(search.grid)
+    for lr, epochs in search.halved.items():
+        assert len(search.histories[lr][0].epochs) == epochs and lr != search.lr
+    assert all(len(search.histories[lr][0].epochs) == 3 for lr in search.grid if lr not in search.halved)
+    assert set(search.grid) == set(recipe.lr_grid) | set(search.extended)
+    assert search.interior or len(search.extended) == recipe.lr_extend
+    # the chosen run was stopped after the rung and continued: the same weights as one uninterrupted run
+    alone = fine_tune(Method("GeM", "gem"), tr, va, recipe, seed=0, lr=search.lr)
+    assert alone.history.best_recall == search.runs[0].history.best_recall
+    for (k, x), (_, y) in zip(alone.model.state_dict().items(), search.runs[0].model.state_dict().items()):
+        assert torch.equal(x, y), k
+    assert "halving" in search.table() or search.lr in search.extended
 
 
 def test_place_labels_keep_a_route_place_whole():

@@ -25,6 +25,7 @@ from torch import nn
 from ._checks import (_inputs_validated, as_float_matrix, check_int, check_positive, check_tensor, tensor_is_finite,
                       validated_inputs)
 from ._threads import single_threaded_call
+from .pointwise import PointwiseConv2d
 
 def _check_feature_map(x: torch.Tensor, name: str, channels: int | None, finite: bool = True) -> torch.Tensor:
     """Validate a non-empty floating ``[B, C, H, W]`` map whose ``C`` equals ``channels`` (if given);
@@ -127,7 +128,7 @@ class NetVLAD(nn.Module):
         self.vladv2 = vladv2
         self.alpha = 0.0
         self.out_dim = self.num_clusters * self.dim
-        self.conv = nn.Conv2d(self.dim, self.num_clusters, kernel_size=(1, 1), bias=vladv2)
+        self.conv = PointwiseConv2d(self.dim, self.num_clusters, bias=vladv2)
         self.centroids = nn.Parameter(torch.rand(self.num_clusters, self.dim))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -367,11 +368,11 @@ class SALAD(nn.Module):
         self.token_features = nn.Sequential(
             nn.Linear(self.num_channels, hidden), nn.ReLU(), nn.Linear(hidden, self.token_dim))
         self.cluster_features = nn.Sequential(
-            nn.Conv2d(self.num_channels, hidden, 1), nn.Dropout(dropout), nn.ReLU(),
-            nn.Conv2d(hidden, self.cluster_dim, 1))
+            PointwiseConv2d(self.num_channels, hidden), nn.Dropout(dropout), nn.ReLU(),
+            PointwiseConv2d(hidden, self.cluster_dim))
         self.score = nn.Sequential(
-            nn.Conv2d(self.num_channels, hidden, 1), nn.Dropout(dropout), nn.ReLU(),
-            nn.Conv2d(hidden, self.num_clusters, 1))
+            PointwiseConv2d(self.num_channels, hidden), nn.Dropout(dropout), nn.ReLU(),
+            PointwiseConv2d(hidden, self.num_clusters))
         self.dust_bin = nn.Parameter(torch.tensor(1.0))
 
     def forward(self, x: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:

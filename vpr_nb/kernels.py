@@ -18,9 +18,8 @@ Measured with :func:`vpr_nb.fingerprint.fingerprint` (six Adam steps of NetVLAD 
 (AVX-512) and an Intel Xeon (AVX-512), same library versions: native kernels differ in both rows; these
 pins with the fused update give the same bits on both; with MKL in its ``AVX2`` mode the SALAD row still
 differs (its Sinkhorn's ``logsumexp``), and with the unfused update both rows differ (MKL's ``sqrt``).
-One gap is left, read from NNPACK's source and not yet measured: on a processor with 16 KiB of level-1 data
-cache per hardware thread, the course backbone's 1x1 projection sums its channels in another order
-(:func:`apply_in_process` explains it).
+Convolutions run without oneDNN and without NNPACK, whose blocks are sized by the processor's cache
+(:func:`apply_in_process`), so an image's map is also the same bits in any batch.
 
 The variables must be set before the libraries start, i.e. in the environment of the process that imports
 them: :func:`pinned_environ` gives it for a child process (a kernel, a worker), ``python -m vpr_nb.kernels
@@ -49,12 +48,6 @@ PINNED: dict[str, str] = {
     "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR",   # numpy's own SIMD loops (numpy >= 2.4 names)
     "FAISS_OPT_LEVEL": "avx2",              # faiss's distance loops
 }
-
-
-# NNPACK (stride-1 convolutions of >= 16 images in a pinned process) sums input channels in blocks of about
-# L1d-per-thread / 256 bytes channels in its FFT path: the course backbone's 1x1 projection (96 channels) sums in
-# one block, as where the outputs are recorded, from this many bytes of L1d per hardware thread up
-NNPACK_ONE_BLOCK_L1D = 96 * 256
 
 
 def pinned_environ(base: Mapping[str, str] | None = None) -> dict[str, str]:
@@ -115,36 +108,27 @@ def pin_before_start() -> str | None:
 
 
 def apply_in_process() -> bool:
-    """In a pinned process (:func:`is_pinned`), route torch's convolutions around oneDNN; return whether it did.
+    """In a pinned process (:func:`is_pinned`), route torch's convolutions around oneDNN and NNPACK; return whether
+    it did.
 
     oneDNN sizes its convolution blocks by the processor's cache, so even limited to AVX2 its gradients add in
     another order on another processor (measured: a from-scratch SmallCNN trained on an Intel Xeon diverged
-    from the same run on an AMD EPYC in its first epoch, while both ran the pinned environment). Without
-    oneDNN torch has two CPU paths. A stride-1 convolution of a batch of 16 images or more runs through NNPACK
-    (Winograd F(6x6, 3x3) for a 3x3 kernel, an 8x8 FFT for the course backbone's 1x1 projection); everything
-    else (the stride-4 patchify layer, batches under 16 images, every gradient) is an unfold and one MKL matrix
-    product, which MKL's ``COMPATIBLE`` mode computes identically on Intel and AMD. So a map computed in a
-    batch of 1-15 images differs from the same image's map in a batch of 16 or more by a few 1e-6, and all
-    batches of 16 or more give the same bits.
+    from the same run on an AMD EPYC in its first epoch, while both ran the pinned environment). Without oneDNN
+    torch runs a stride-1 convolution of 16 or more images through NNPACK, which sums input channels in blocks
+    of about L1d-per-thread / 256 bytes (so the course backbone's 1x1 projection summed 96 channels as 64 + 32
+    on processors with 16 KiB of level-1 data cache per hardware thread) and gives a batch of 16 other bits
+    than a batch of 15. Without both, every convolution is an unfold and one MKL matrix product per image,
+    which MKL's ``COMPATIBLE`` mode computes identically on Intel and AMD and in any batch; the 1x1 layers of
+    the backbone and the aggregators are one product over all positions (:class:`vpr_nb.pointwise.PointwiseConv2d`).
 
-    NNPACK, too, sizes blocks by the cache: it sums the input channels in blocks of about L1d-per-thread / 256
-    bytes channels in its FFT path (/ 224 in Winograd), where L1d-per-thread is the level-1 data cache divided
-    by the logical processors sharing it. Every layer of the course backbone fits in one block (one summation
-    order) when that is at least 24 KiB: the AMD EPYC the outputs are recorded on (48 KiB, one thread per core)
-    and processors with 48 KiB shared by two hyper-threads. With 16 KiB per thread (32 KiB shared by two
-    hyper-threads: many Intel processors before Ice Lake, AMD Zen 1-4 with SMT on) the 1x1 projection sums
-    its 96 channels as 64 + 32, so its outputs and every trained number differ in the last bits. This is read
-    from NNPACK's source, not yet run on such a machine; ``tests/test_kernels.py``'s fingerprint test fails
-    there, naming the processor. Routing the 1x1 projection around NNPACK would close the gap, and changes
-    every stored number of the course.
-
-    Called once by each front door (:func:`vpr_nb.notebook.setup`, the console scripts, the tests' conftest); costs about 1.8x
-    on a whole-network training step, less on the course's fine-tuning (one trainable block)."""
+    Called once by each front door (:func:`vpr_nb.notebook.setup`, the console scripts, the tests' conftest).
+    What it costs is measured by ``bench/bench_kernels.py`` (docs/performance.md)."""
     if not is_pinned():
         return False
     import torch   # at call time: importing this module must not start torch
 
     torch.backends.mkldnn.enabled = False
+    torch.backends.nnpack.set_flags(False)     # (setting torch.backends.nnpack.enabled does nothing)
     return True
 
 
@@ -168,9 +152,8 @@ def describe() -> dict:
 
 def l1d_per_thread(cpu_dir: str = "/sys/devices/system/cpu/cpu0") -> int | None:
     """Bytes of level-1 data cache per hardware thread of the first processor (its size over the logical
-    processors sharing it, from Linux's sysfs), the figure NNPACK sizes its blocks by; None where sysfs does
-    not say. Below :data:`NNPACK_ONE_BLOCK_L1D` the course backbone's 1x1 projection sums in two blocks, in
-    another order than where the outputs are recorded (:func:`apply_in_process`)."""
+    processors sharing it, from Linux's sysfs), the figure cache-blocked kernels (oneDNN, NNPACK) size their
+    blocks by; None where sysfs does not say. Recorded in :func:`describe` for comparing machines."""
     import glob
 
     for index in sorted(glob.glob(os.path.join(cpu_dir, "cache", "index*"))):

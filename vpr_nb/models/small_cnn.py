@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from .._checks import check_int
+from ..pointwise import PointwiseConv2d
 from .image_checks import _check_images
 
 
@@ -58,7 +59,7 @@ class SmallCNN(nn.Module):
         layers = [*_conv_gn_relu(self.in_channels, width, 4, 4, groups),      # built in this order: the same
                   *_conv_gn_relu(width, width, 3, 1, groups),                 # seed gives the same weights
                   *_conv_gn_relu(width, 2 * width, 3, 1, groups),
-                  nn.Conv2d(2 * width, self.out_channels, 1)]
+                  PointwiseConv2d(2 * width, self.out_channels, 1)]
         if self.final_norm:      # GroupNorm on the projection too: each image's local features centred per group
             layers.append(nn.GroupNorm(self.final_norm, self.out_channels))
         self.features = nn.Sequential(*layers, nn.ReLU(inplace=True))

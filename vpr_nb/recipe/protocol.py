@@ -54,6 +54,10 @@ class Recipe:
     min_val_queries: int = 500       # below it, choose the lr over >= search_seeds seeds
     search_seeds: int = 3            # the lr is chosen on a run's first 3 seeds (on notebook 03's 8 searched
                                      # rows and 06's 2 arms the same rate as the mean over all 5 seeds)
+    halving_epochs: int = 3          # successive halving: after 3 epochs the better half of the lrs (mean val
+                                     # R@1 so far over the search seeds) trains on, the rest stop (0: off)
+    lr_extend: int = 3               # the grid grows by up to 3 steps of the 1-3 ladder beyond an edge the
+                                     # chosen lr sits on, so that the choice is interior (0: never)
     ns: tuple[int, ...] = (1, 5, 10)
     # frozen-block cache
     frozen_cache: bool = True
@@ -69,6 +73,8 @@ class Recipe:
         check_int(self.trainable_blocks, "trainable_blocks", minimum=0, maximum=4)
         check_int(self.images_per_place, "images_per_place", minimum=2)
         check_int(self.min_val_queries, "min_val_queries", minimum=0)
+        check_int(self.halving_epochs, "halving_epochs", minimum=0)
+        check_int(self.lr_extend, "lr_extend", minimum=0)
         for name in ("margin", "weight_decay", "salad_dropout"):
             check_positive(getattr(self, name), name, allow_zero=True)
         for name in ("lr", "gamma"):

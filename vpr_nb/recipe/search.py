@@ -5,8 +5,10 @@ import copy
 import dataclasses
 import math
 import multiprocessing as mp
+import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -43,16 +45,40 @@ class FineTuneResult:
         return len(self.history.epochs)
 
 
-def _run(method, train_split, val_split, recipe, seed, lr, cache, progress) -> FineTuneResult:
+def _run(method, train_split, val_split, recipe, seed, lr, cache, progress, checkpoint_dir=None,
+         stop_after=None) -> FineTuneResult:
+    """One run; with ``checkpoint_dir`` it continues the run saved there (``train``'s resume, the same weights as
+    an uninterrupted run) and ``stop_after`` epochs of this call end it early (successive halving's rung)."""
     model = build_start(method, train_split, recipe, seed, cache)
     start = copy.deepcopy(model)
     detach(start.backbone)
     try:
         history = train(model, make_source(method, train_split, recipe), val_split, recipe.train_config(lr, seed),
-                        progress=progress)
+                        progress=progress, checkpoint_dir=checkpoint_dir, stop_after=stop_after)
     finally:
         detach(model.backbone)
     return FineTuneResult(method.name, seed, float(lr), model, history, start)
+
+
+def ladder_step(lr: float, up: bool) -> float:
+    """The next learning rate above (``up``) or below ``lr`` on the 1-3 ladder ..., 1e-4, 3e-4, 1e-3, 3e-3, ...
+    (a rate off the ladder steps to the nearest ladder value beyond it)."""
+    lr = check_positive(lr, "lr")
+    exp = math.floor(math.log10(lr))
+    ladder = sorted(float(f"{m * 10.0 ** e:.6g}") for e in range(exp - 2, exp + 3) for m in (1, 3))
+    return (next(v for v in ladder if v > lr * (1 + 1e-9)) if up
+            else next(v for v in reversed(ladder) if v < lr * (1 - 1e-9)))
+
+
+def _recall_after(history, epochs: int, n: int) -> float:
+    """The best validation Recall@``n`` of a run over its start and its first ``epochs`` epochs."""
+    recalls = history.recalls(n)[:epochs] + ([float(history.initial["val"][n])] if history.initial else [])
+    return max(recalls, default=-1.0)
+
+
+def _best(val_recall: dict, candidates) -> float:
+    """The lr with the highest mean validation recall among ``candidates``; ties: the smaller lr."""
+    return min(candidates, key=lambda lr: (-float(np.mean(val_recall[lr])), lr))
 
 
 @dataclass
@@ -72,28 +98,46 @@ class LRSearch:
     runs: dict
     histories: dict
     cache: dict | None = None
+    halved: dict = dataclasses.field(default_factory=dict)
+    extended: tuple[float, ...] = ()
+
+    @property
+    def interior(self) -> bool:
+        """The chosen lr has a tried lr on each side (or the grid has one point: nothing was chosen)."""
+        return len(self.grid) == 1 or self.grid[0] < self.lr < self.grid[-1]
 
     def table(self) -> str:
         """One line per lr: mean ± std of the selected val Recall over the search seeds, best epochs, the
         choice."""
         lines = [f"{self.method}: lr chosen on validation ({self.val_queries} queries, "
-                 f"mean over seeds {list(self.search_seeds)})"]
+                 f"mean over seeds {list(self.search_seeds)}; grid {[float(f'{v:g}') for v in self.grid]}"
+                 + (f", extended by {[float(f'{v:g}') for v in self.extended]}" if self.extended else "") + ")"]
         for lr in self.grid:
             vals = self.val_recall[lr]
             sd = float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0
             epochs = [self.histories[lr][s].best_epoch + 1 for s in self.search_seeds]
             lines.append(f"  lr {lr:.2g}: val R@1 {np.mean(vals):.3f} ± {sd:.3f}, best epoch {epochs}"
+                         + (f"   (stopped after {self.halved[lr]} epochs: halving)" if lr in self.halved else "")
                          + ("   <- chosen" if lr == self.lr else ""))
         return "\n".join(lines)
 
 
 def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,), *,
               cache: FrozenFeatureCache | None = None, progress: bool = False) -> LRSearch:
-    """Fine-tune ``method`` at every lr of :meth:`Method.lr_grid` for the first ``recipe.search_seeds`` of
+    """Fine-tune ``method`` at the lrs of :meth:`Method.lr_grid` for the first ``recipe.search_seeds`` of
     ``seeds``; choose the lr with the highest mean selected validation Recall@``ns[0]`` over them (ties: the
     smaller lr); then fine-tune the remaining seeds at the chosen lr only. Every run is seeded on its own, so
     a seed's run at the chosen lr is the same whether or not it took part in the choice. A one-point grid has
     nothing to choose: every seed runs at it and counts in ``val_recall``.
+
+    **Successive halving** (``recipe.halving_epochs`` = r > 0, grids of 3 or more): every lr first trains r
+    epochs; the better half by mean best validation recall so far (ties: the smaller lr) trains on to the end,
+    continued from its checkpoint (the same weights as an uninterrupted run), and the others stop
+    (``halved``). **Interior choice** (``recipe.lr_extend`` = e): while the chosen lr is the smallest or the
+    largest tried, the next rate beyond it on the 1-3 ladder (:func:`ladder_step`) trains r epochs and on to
+    the end only if its mean best validation recall then beats the chosen rate's after r epochs (else it is
+    halved, and the choice is inside the grid); the choice is made again, at most e times (``extended``;
+    :attr:`LRSearch.interior` says whether it ended inside).
 
     The choice is refused (``ValueError``) on a validation split with fewer than ``recipe.min_val_queries``
     queries unless it is made over at least ``recipe.search_seeds`` seeds: on 133 queries one query is
@@ -114,19 +158,54 @@ def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
                          f"split, or fine-tune at a given lr (fine_tune(..., lr=recipe.lr))")
     if cache is None and recipe.frozen_cache:
         cache = FrozenFeatureCache(recipe.cache_dtype)
-    val_recall, histories, best, best_runs = {}, {}, -math.inf, {}
-    for lr in grid:
-        runs = {s: _run(method, train_split, val_split, recipe, s, lr, cache, progress) for s in chooses}
-        val_recall[lr] = [r.history.best_recall for r in runs.values()]
-        histories[lr] = {s: r.history for s, r in runs.items()}
-        if float(np.mean(val_recall[lr])) > best:          # ascending grid: a tie keeps the smaller lr
-            best, best_runs = float(np.mean(val_recall[lr])), runs
-    chosen = next(iter(best_runs.values())).lr
+    runs, halved, extended = {}, {}, []
+    rung = recipe.halving_epochs if 0 < recipe.halving_epochs < recipe.max_epochs else 0
+    with tempfile.TemporaryDirectory(prefix="vpr_nb-lr-search-") as tmp:     # the runs stopped at the rung
+        def run_all(lr, stop_after=None, resumable=False):
+            return {s: _run(method, train_split, val_split, recipe, s, lr, cache, progress,
+                            Path(tmp) / f"{lr:g}-{s}" if resumable else None, stop_after) for s in chooses}
+
+        if len(grid) >= 3 and rung:
+            first = {lr: run_all(lr, rung, True) for lr in grid}
+            score = {lr: [r.history.best_recall for r in first[lr].values()] for lr in grid}
+            keep = sorted(grid, key=lambda lr: (-float(np.mean(score[lr])), lr))[:math.ceil(len(grid) / 2)]
+            for lr in grid:
+                if lr in keep:
+                    runs[lr] = run_all(lr, None, True)
+                else:
+                    runs[lr], halved[lr] = first[lr], rung
+        else:
+            runs = {lr: run_all(lr) for lr in grid}
+        val_recall = {lr: [r.history.best_recall for r in rs.values()] for lr, rs in runs.items()}
+        full = [lr for lr in runs if lr not in halved]
+        chosen = _best(val_recall, full)
+        for _ in range(recipe.lr_extend if len(grid) > 1 else 0):
+            tried = sorted(runs)
+            if tried[0] < chosen < tried[-1]:
+                break
+            new = ladder_step(chosen, up=chosen == tried[-1])
+            extended.append(new)
+            if rung:        # the rate beyond the edge trains on only if it leads the chosen one at the rung
+                runs[new] = run_all(new, rung, True)
+                if np.mean([r.history.best_recall for r in runs[new].values()]) > np.mean(
+                        [_recall_after(r.history, rung, recipe.ns[0]) for r in runs[chosen].values()]):
+                    runs[new] = run_all(new, None, True)
+                else:
+                    halved[new] = rung
+            else:
+                runs[new] = run_all(new)
+            val_recall[new] = [r.history.best_recall for r in runs[new].values()]
+            if new not in halved:
+                full.append(new)
+                chosen = _best(val_recall, full)
+    histories = {lr: {s: r.history for s, r in runs[lr].items()} for lr in sorted(runs)}
+    best_runs = dict(runs[chosen])
     for s in seeds[len(chooses):]:                         # the other seeds: at the chosen lr only
         best_runs[s] = _run(method, train_split, val_split, recipe, s, chosen, cache, progress)
         histories[chosen][s] = best_runs[s].history
-    search = LRSearch(method.name, chosen, grid, seeds, chooses, queries, val_recall,
-                      {s: best_runs[s] for s in seeds}, histories, None if cache is None else cache.stats())
+    search = LRSearch(method.name, chosen, tuple(sorted(runs)), seeds, chooses, queries,
+                      {lr: val_recall[lr] for lr in sorted(runs)}, {s: best_runs[s] for s in seeds}, histories,
+                      None if cache is None else cache.stats(), halved, tuple(sorted(extended)))
     for r in best_runs.values():
         r.search = search
     return search
