@@ -50,6 +50,7 @@ $(STAMP): environment.txt pyproject.toml setup.py
 	$(call install_torch,$(BIN),torch==$(TORCH_PIN))
 	$(BIN)/python -m pip install -q -r environment.txt
 	$(BIN)/python -m pip install -q --no-deps -e .
+	$(BIN)/python -m vpr_nb.authoring --install-save-hook
 	touch $(STAMP)
 
 $(DEV_STAMP): $(STAMP) requirements-dev.txt

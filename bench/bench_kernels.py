@@ -7,14 +7,16 @@ both alike. Each child measures process CPU time on one torch thread:
 * **layers** (one training batch of the course recipe, 112 images of 32x48 pixels, median of 15 repeats):
   the course backbone's frozen blocks (forward), its trainable 1x1 projection (forward + backward), and the
   NetVLAD-16 and SALAD heads on its 8x12 feature map (forward + backward);
+* **products**: one float32 matrix product of the shapes the course's 1x1 layers multiply (10,752 rows = 112
+  images x 96 positions, times the layer's weights), the BLAS call under every pinned 1x1 layer
+  (:class:`vpr_nb.pointwise.PointwiseConv2d`): MKL's ``COMPATIBLE`` mode against its native code;
 * **fine-tune**: ``vpr_nb.recipe.fine_tune`` of NetVLAD, 4 epochs (early stopping off) on the tiny city world.
 
-Printed: each part's CPU seconds both ways and the ratio pinned / native (the issue's target for a course
-fine-tune: <= 1.5). Also which convolution path runs (NNPACK or not) in the pinned child.
+Printed: each part's CPU seconds both ways and the ratio pinned / native (the target for a course
+fine-tune: <= 1.5). Also which convolution paths the pinned child has (oneDNN and NNPACK both off).
 
-    python bench/bench_kernels.py            # layers + fine-tune
-    python bench/bench_kernels.py --layers   # layers only (about a minute)
-    python bench/bench_kernels.py --no-nnpack  # the same with NNPACK off (a candidate for cheaper pins)
+    python bench/bench_kernels.py            # layers + products + fine-tune
+    python bench/bench_kernels.py --layers   # layers and products only (about a minute)
 """
 from __future__ import annotations
 
@@ -44,11 +46,10 @@ def child(parts: list[str]) -> dict:
     from vpr_nb.synthetic import make_dataset
 
     apply_in_process()
-    if "no-nnpack" in parts:        # the candidate fix: stride-1 convolutions as an unfold + one matrix product
-        torch.backends.nnpack.set_flags(False)
     torch.set_num_threads(1)
     # NNPACK runs stride-1 convolutions of >= 16 images where it is available and enabled (torch's own flag)
-    out = {"pinned": is_pinned(), "nnpack": torch.backends.nnpack.is_available() and torch._C._get_nnpack_enabled()}
+    out = {"pinned": is_pinned(), "nnpack": torch.backends.nnpack.is_available() and torch._C._get_nnpack_enabled(),
+           "onednn": torch.backends.mkldnn.enabled}
 
     def timed(fn, repeats=15):
         fn()
@@ -83,6 +84,10 @@ def child(parts: list[str]) -> dict:
                 head.zero_grad()
                 head(inputs).sum().backward()
             out[f"{name} head, forward + backward"] = timed(step)
+        for k, n, what in ((96, 128, "projection"), (128, 16, "NetVLAD-16 assignment"),
+                           (128, 64, "SALAD MLP in"), (64, 32, "SALAD MLP out")):
+            rows, weight = torch.randn(112 * 96, k), torch.randn(n, k)
+            out[f"product {k}->{n} ({what})"] = timed(lambda rows=rows, weight=weight: rows @ weight.t())
     if "fine-tune" in parts:
         ds = make_dataset("city", seed=0, size="tiny")
         recipe = dataclasses.replace(RECIPE, max_epochs=4, patience=4)
@@ -102,24 +107,22 @@ def run_child(env: dict, parts: list[str]) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--layers", action="store_true", help="the layers only")
-    ap.add_argument("--no-nnpack", action="store_true",
-                    help="switch NNPACK off in both children (torch.backends.nnpack.set_flags(False)): what the "
-                         "pinned path would cost without it (its numbers differ from the stored ones)")
+    ap.add_argument("--layers", action="store_true", help="the layers and products only")
+    ap.add_argument("--quick", action="store_true", help="the layers and products only (make bench)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(child(args.child.split(","))))
         return 0
-    parts = (["layers"] if args.layers else ["layers", "fine-tune"]) + (["no-nnpack"] if args.no_nnpack else [])
+    parts = ["layers"] if args.layers or args.quick else ["layers", "fine-tune"]
     native_env = {k: v for k, v in os.environ.items() if k not in PINNED}
     runs = {True: [], False: []}
     for pinned in (True, False, False, True):
         runs[pinned].append(run_child(pinned_environ(native_env) if pinned else native_env, parts))
-    print(f"pinned child: pinned={runs[True][0]['pinned']}, NNPACK enabled={runs[True][0]['nnpack']}; "
-          f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(f"pinned child: pinned={runs[True][0]['pinned']}, oneDNN convolutions={runs[True][0]['onednn']}, "
+          f"NNPACK={runs[True][0]['nnpack']}; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     for key in runs[True][0]:
-        if key in ("pinned", "nnpack"):
+        if key in ("pinned", "nnpack", "onednn"):
             continue
         p = statistics.mean(r[key] for r in runs[True])
         n = statistics.mean(r[key] for r in runs[False])

@@ -9,7 +9,8 @@ The package is six layers; a module imports only from its own layer or the layer
 2. **data**: the images a method reads: the synthetic world (:mod:`vpr_nb.synthetic`), the real datasets'
    formats (:mod:`vpr_nb.datasets`), splits and positives (:mod:`vpr_nb.split`), images as tensors.
 3. **methods**: what the course teaches, each idea in its own module: losses, aggregation, models,
-   retrieval and Recall@N (:mod:`vpr_nb.evaluation`), GDS, mining, samplers, probes, and plots of them.
+   retrieval and Recall@N (:mod:`vpr_nb.evaluation`), GDS, mining, samplers, probes, plots of them, and each
+   paper's premise measured (:mod:`vpr_nb.premise`).
 4. **running**: how a method is run: the CPU kernels (a process setting), the frozen-feature cache, the
    training loop, run folders and logs.
 5. **protocols**: the course's experiments as configurations: the typed run config, the fine-tuning

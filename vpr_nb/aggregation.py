@@ -168,28 +168,7 @@ class NetVLAD(nn.Module):
         if cents.shape[0] != self.num_clusters:
             raise ValueError(f"centroids has {cents.shape[0]} rows but the layer has num_clusters="
                              f"{self.num_clusters}; run k-means with that many clusters")
-        if self.num_clusters < 2:
-            raise ValueError("init_from_clusters needs at least 2 clusters (alpha compares the best "
-                             "and the second-best cluster)")
-        if self.vladv2:
-            sq_dist = (descs ** 2).sum(1, keepdims=True) - 2 * descs @ cents.T + (cents ** 2).sum(1)
-            two_nearest = np.sort(sq_dist, axis=1)[:, :2]
-            gap = float(np.mean(two_nearest[:, 1] - two_nearest[:, 0]))
-        else:
-            cent_norms = np.linalg.norm(cents, axis=1, keepdims=True)
-            if (cent_norms == 0).any():
-                raise ValueError("centroids contains an all-zero row: it has no direction for the "
-                                 "cosine assignment; re-run k-means or drop the empty cluster")
-            desc_norms = np.linalg.norm(descs, axis=1, keepdims=True)
-            if (desc_norms == 0).any():
-                raise ValueError("descriptors contains an all-zero row; drop it before initialising")
-            cos = (descs / desc_norms) @ (cents / cent_norms).T
-            two_best = -np.sort(-cos, axis=1)[:, :2]
-            gap = float(np.mean(two_best[:, 0] - two_best[:, 1]))
-        if not gap > 0:
-            raise ValueError("every descriptor is equally close to its two nearest centroids, so alpha "
-                             "is undefined; use distinct centroids (e.g. from kmeans_centroids)")
-        self.alpha = float(-np.log(0.01) / gap)
+        self.alpha = netvlad_alpha(cents, descs, self.vladv2)
         with torch.no_grad():
             cent_t = torch.from_numpy(cents)
             if self.vladv2:
@@ -199,6 +178,36 @@ class NetVLAD(nn.Module):
                 unit = cent_t / cent_t.norm(dim=1, keepdim=True)
                 self.conv.weight.copy_((self.alpha * unit)[:, :, None, None])
             self.centroids.copy_(cent_t)
+
+
+@single_threaded_call   # numpy products on one BLAS thread (vpr_nb._threads)
+def netvlad_alpha(centroids: np.ndarray, descriptors: np.ndarray, vladv2: bool = False) -> float:
+    """NetVLAD's α (:meth:`NetVLAD.init_from_clusters`): ``−log(0.01) / mean Δ`` with Δ the gap between a
+    descriptor's best and second-best cluster (v1: cosine similarities; v2: squared distances), so that on
+    average the best cluster gets 100× the second's weight. float64 numpy ``[K, D]`` and ``[N, D]``, K ≥ 2."""
+    cents, descs = np.asarray(centroids, dtype=np.float64), np.asarray(descriptors, dtype=np.float64)
+    if cents.shape[0] < 2:
+        raise ValueError("init_from_clusters needs at least 2 clusters (alpha compares the best "
+                         "and the second-best cluster)")
+    if vladv2:
+        sq_dist = (descs ** 2).sum(1, keepdims=True) - 2 * descs @ cents.T + (cents ** 2).sum(1)
+        two_nearest = np.sort(sq_dist, axis=1)[:, :2]
+        gap = float(np.mean(two_nearest[:, 1] - two_nearest[:, 0]))
+    else:
+        cent_norms = np.linalg.norm(cents, axis=1, keepdims=True)
+        if (cent_norms == 0).any():
+            raise ValueError("centroids contains an all-zero row: it has no direction for the "
+                             "cosine assignment; re-run k-means or drop the empty cluster")
+        desc_norms = np.linalg.norm(descs, axis=1, keepdims=True)
+        if (desc_norms == 0).any():
+            raise ValueError("descriptors contains an all-zero row; drop it before initialising")
+        cos = (descs / desc_norms) @ (cents / cent_norms).T
+        two_best = -np.sort(-cos, axis=1)[:, :2]
+        gap = float(np.mean(two_best[:, 0] - two_best[:, 1]))
+    if not gap > 0:
+        raise ValueError("every descriptor is equally close to its two nearest centroids, so alpha "
+                         "is undefined; use distinct centroids (e.g. from kmeans_centroids)")
+    return float(-np.log(0.01) / gap)
 
 
 def sample_local_descriptors(feature_maps: torch.Tensor, per_image: int, seed: int = 0,
@@ -307,16 +316,23 @@ def sinkhorn(scores: torch.Tensor, dustbin: torch.Tensor | float, num_iters: int
     return log_k + u[:, :, None] + v[:, None, :] - norm
 
 
+SALAD_ASSIGNMENTS = ("sinkhorn", "softmax")
+
+
 def salad_aggregate(local_features: torch.Tensor, scores: torch.Tensor, token: torch.Tensor,
-                    dustbin: torch.Tensor | float, num_iters: int = 3) -> torch.Tensor:
+                    dustbin: torch.Tensor | float, num_iters: int = 3, assignment: str = "sinkhorn") -> torch.Tensor:
     """SALAD's aggregation step (Izquierdo & Civera, CVPR 2024, Sec. 3) on already projected inputs.
 
     ``local_features`` ``f`` ``[B, l, n]``, ``scores`` ``s`` ``[B, m, n]`` and the projected global
     token ``[B, d]`` give ``L2([L2(token), V])`` with ``P = exp(sinkhorn(s, dustbin))`` minus its
     dustbin row and ``V[l, k] = Σ_i f[l, i]·P[k, i]`` (one batched product ``f·Pᵀ``, no
     ``[B, l, m, n]`` tensor), each cluster column L2-normalised over l and flattened as ``l·m + k``.
-    Output ``[B, d + l·m]``.
+    Output ``[B, d + l·m]``. ``assignment="softmax"`` (the mechanism's ablation) replaces the plan by
+    ``P = softmax_k(s)``: each feature's unit of mass spread over the clusters on its own, NetVLAD's way, with
+    no dustbin and no cluster marginal (``dustbin`` and ``num_iters`` are then unused).
     """
+    if assignment not in SALAD_ASSIGNMENTS:
+        raise ValueError(f"assignment must be one of {SALAD_ASSIGNMENTS}, got {assignment!r}")
     check_tensor(local_features, "local_features", ndim=3)
     check_tensor(token, "token", ndim=2)
     check_tensor(scores, "scores", ndim=3)
@@ -325,8 +341,11 @@ def salad_aggregate(local_features: torch.Tensor, scores: torch.Tensor, token: t
     if scores.shape[0] != batch or scores.shape[2] != n or token.shape[0] != batch:
         raise ValueError(f"local_features {tuple(local_features.shape)}, scores {tuple(scores.shape)} and token "
                          f"{tuple(token.shape)} must share the batch size B (and n for the first two)")
-    with validated_inputs():    # sinkhorn gets the scores and dustbin checked above
-        p = torch.exp(sinkhorn(scores, dustbin, num_iters))[:, :-1, :]           # [B, m, n]
+    if assignment == "softmax":
+        p = torch.softmax(scores, dim=1)                                          # [B, m, n], columns sum to 1
+    else:
+        with validated_inputs():    # sinkhorn gets the scores and dustbin checked above
+            p = torch.exp(sinkhorn(scores, dustbin, num_iters))[:, :-1, :]       # [B, m, n]
     v = torch.bmm(local_features, p.transpose(1, 2).to(local_features.dtype))     # [B, l, m]
     v = F.normalize(v, p=2, dim=1).flatten(1)
     return F.normalize(torch.cat([F.normalize(token, p=2, dim=-1), v], dim=-1), p=2, dim=-1)
@@ -348,13 +367,19 @@ class SALAD(nn.Module):
     ``hidden_dim`` is the width of the three MLP heads (512 in the published model, whose checkpoint
     needs the default; a smaller width suits small backbones such as :class:`vpr_nb.models.SmallCNN`).
     Initial weights come from torch's global RNG (seed it, e.g. with :func:`vpr_nb.seed_everything`).
+    ``assignment="softmax"`` runs the same head without optimal transport (:func:`salad_aggregate`): the
+    mechanism's ablation; the default ``"sinkhorn"`` is the paper's.
     """
 
     needs_token = True  # forward takes the pair (feature map, global token)
 
     def __init__(self, num_channels: int = 768, num_clusters: int = 64, cluster_dim: int = 128,
-                 token_dim: int = 256, dropout: float = 0.3, hidden_dim: int = 512) -> None:
+                 token_dim: int = 256, dropout: float = 0.3, hidden_dim: int = 512,
+                 assignment: str = "sinkhorn") -> None:
         super().__init__()
+        if assignment not in SALAD_ASSIGNMENTS:
+            raise ValueError(f"assignment must be one of {SALAD_ASSIGNMENTS}, got {assignment!r}")
+        self.assignment = assignment
         self.num_channels = check_int(num_channels, "num_channels")
         self.num_clusters = check_int(num_clusters, "num_clusters")
         self.cluster_dim = check_int(cluster_dim, "cluster_dim")
@@ -389,7 +414,7 @@ class SALAD(nn.Module):
         f = self.cluster_features(features).flatten(2)                              # [B, l, n]
         s = self.score(features).flatten(2)                                          # [B, m, n]
         with validated_inputs():    # f, s and the token come from the inputs checked above
-            return salad_aggregate(f, s, self.token_features(token), self.dust_bin, 3)
+            return salad_aggregate(f, s, self.token_features(token), self.dust_bin, 3, self.assignment)
 
     def standardise_inputs(self, mean, std) -> None:
         """Fold ``x -> (x - mean) / std`` (per channel) into the first 1×1 conv of the score and cluster-feature

@@ -1,7 +1,8 @@
 """Which pairs or triplets a loss sees: descriptor miners (NetVLAD hard negatives).
 
 * :func:`mine_triplets` -- NetVLAD (Arandjelovic et al., CVPR 2016) weakly supervised triplets:
-  best positive within 10 m, hardest negatives beyond 25 m, with a per-query negative cache.
+  best positive within 10 m, hardest negatives beyond 25 m, with a per-query negative cache; or
+  (``positive="random"``) one potential positive drawn at random, which DW-T-Loss's Eq. (4) can rank.
 
 The geotag/place batch samplers (CliqueMining, random places, batch statistics) are in
 :mod:`vpr_nb.samplers`, as pytorch-metric-learning keeps samplers apart from miners.
@@ -20,6 +21,37 @@ from .samplers._common import _as_rng, _dist
 from .split import positives_within
 from ._threads import single_threaded_call
 
+POSITIVE_RULES = ("best", "random")
+"""How :func:`mine_triplets` picks a query's positive among its potential positives: ``"best"`` (NetVLAD's
+Eq. (7): the nearest in descriptor space) or ``"random"`` (one drawn uniformly at random)."""
+
+
+def check_positive_rule(positive) -> str:
+    """``positive`` itself when it is one of :data:`POSITIVE_RULES`, else ValueError naming them."""
+    if not isinstance(positive, str) or positive not in POSITIVE_RULES:
+        raise ValueError(f"positive must be one of {POSITIVE_RULES} (the nearest potential positive in descriptor "
+                         f"space, or one drawn at random), got {positive!r}")
+    return positive
+
+
+def _seed_sequence(seed) -> np.random.SeedSequence:
+    if isinstance(seed, np.random.SeedSequence):
+        return seed
+    try:
+        return np.random.SeedSequence(seed)
+    except (TypeError, ValueError):
+        raise ValueError(f"positive_seed must be a non-negative int, a sequence of them (e.g. (seed, epoch)) or a "
+                         f"np.random.SeedSequence, got {seed!r}") from None
+
+
+def positive_rng(seed, query: int) -> np.random.Generator:
+    """The generator that draws query ``query``'s random positive: child ``query`` of ``seed`` (an int, a
+    sequence of ints such as ``(seed, epoch)``, or a ``np.random.SeedSequence``), independent of the model
+    and of the order in which queries are mined."""
+    ss = _seed_sequence(seed)
+    return np.random.default_rng(np.random.SeedSequence(ss.entropy, spawn_key=(*ss.spawn_key, int(query)),
+                                                        pool_size=ss.pool_size))
+
 
 # ----------------------------------------------------------------------------- NetVLAD triplets
 @dataclass(frozen=True, eq=False)
@@ -28,7 +60,8 @@ class TripletBatch:
 
     Attributes:
         query: ``(B,)`` query indices (into the query arrays).
-        positive: ``(B,)`` database index of the best positive, -1 for invalid queries.
+        positive: ``(B,)`` database index of the positive (the best one, or the random one with
+            ``positive="random"``), -1 for queries without a potential positive.
         negatives: ``(B, M)`` database indices of the M hardest negatives, hardest first
             (-1 for queries without a positive or with fewer than M negatives).
         negative_mask: ``(B, M)`` True where the negative violates the margin
@@ -66,13 +99,15 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
                   neg_radius: float = 25.0, num_negatives: int = 10, num_candidates: int = 1000,
                   neg_cache: dict[int, np.ndarray] | None = None, rng, margin: float | None = None,
                   q_heading=None, db_heading=None, max_heading_diff: float | None = None,
-                  positives=None, near=None) -> TripletBatch:
+                  positives=None, near=None, positive: str = "best", positive_seed=None) -> TripletBatch:
     """NetVLAD weakly supervised tuple mining (Arandjelovic et al., CVPR 2016, Sec. 4, Eq. (7)).
 
     For each query in ``query_ids``:
 
     * positive: among the database images within ``train_pos_radius`` m (inclusive), the one
-      nearest in descriptor space (Eq. (7) takes the best of the potential positives);
+      nearest in descriptor space (Eq. (7) takes the best of the potential positives); with
+      ``positive="random"``, one of them drawn uniformly at random (the best rule mostly picks the
+      nearest view; random positives spread over the radius, which DW-T-Loss's Eq. (4) can rank);
     * candidate negatives: ``num_candidates`` images drawn uniformly *without replacement* among
       the database images farther than ``neg_radius`` m, plus the query's cached negatives
       (those farther than ``neg_radius`` m);
@@ -114,6 +149,12 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
             (the potential positives) and within ``neg_radius`` (never negatives), e.g. rows of a split's
             ``positives(train_pos_radius)`` / ``positives(neg_radius)``, which stay inside each region
             (city). None: the radius search of ``q_utm`` / ``db_utm`` (:func:`vpr_nb.split.positives_within`).
+        positive: ``"best"`` (default, NetVLAD's rule) or ``"random"`` (:data:`POSITIVE_RULES`).
+        positive_seed: with ``positive="random"``, the seed of the draws (an int, a sequence of ints such as
+            ``(seed, epoch)``, or a ``np.random.SeedSequence``): query ``i`` draws from
+            :func:`positive_rng` ``(positive_seed, i)``, so the draw depends neither on the model nor on ``rng``,
+            whose stream (the negatives) stays the best rule's. None: drawn from ``rng``, after the query's
+            negative candidates. Ignored by the best rule, which draws nothing.
     """
     qd, dbd, qu, du = check_geo_descriptors(q_desc, db_desc, q_utm, db_utm)
     ids = np.asarray(query_ids)
@@ -137,6 +178,9 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
     elif not isinstance(neg_cache, dict):
         raise ValueError(f"neg_cache must be a dict {{query index: negatives}} or None, got {type(neg_cache).__name__}")
     rng = _as_rng(rng)
+    rule = check_positive_rule(positive)
+    if rule == "random" and positive_seed is not None:
+        positive_seed = _seed_sequence(positive_seed)
     if max_heading_diff is not None:
         max_heading_diff = check_positive(max_heading_diff, "max_heading_diff")
         if q_heading is None or db_heading is None:
@@ -174,8 +218,11 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
             continue
         q = qd[qi]
         d_pos = np.sqrt(_sq_dist(q, dbd[pos]))
-        best = int(np.argmin(d_pos))
-        positive[r], geo_qp[r] = pos[best], _dist(qu[qi], du[pos[best]])
+        if rule == "best":
+            pick = int(np.argmin(d_pos))
+        else:
+            pick = int((rng if positive_seed is None else positive_rng(positive_seed, qi)).integers(len(pos)))
+        positive[r], geo_qp[r] = pos[pick], _dist(qu[qi], du[pos[pick]])
         is_cand[sample] = is_cand[cached] = True
         cand = np.flatnonzero(is_cand)         # the union of both, ascending
         is_cand[cand] = False
@@ -185,7 +232,7 @@ def mine_triplets(q_desc, db_desc, q_utm, db_utm, query_ids, *, train_pos_radius
         hardest = np.argsort(d_neg, kind="stable")[:m]
         negatives[r] = cand[hardest]
         neg_cache[qi] = cand[hardest]
-        mask[r] = True if margin is None else d_neg[hardest] < d_pos[best] + margin
+        mask[r] = True if margin is None else d_neg[hardest] < d_pos[pick] + margin
         valid[r] = mask[r].any()
     return TripletBatch(query=ids, positive=positive, negatives=negatives, negative_mask=mask,
                         geo_qp=geo_qp, valid=valid, neg_cache=neg_cache)

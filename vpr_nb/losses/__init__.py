@@ -8,6 +8,9 @@ One idea per module, in the spirit of pytorch-metric-learning's ``losses/``; eve
                                         :func:`weighted_triplet_loss` (Eq. (4) x (3)), :func:`ce_triplet_loss`
                                         (Eqs. (5)-(8)), :func:`dw_triplet_loss` (Eq. (9)) and their loss
                                         objects (:class:`TripletFamilyLoss` and its subclasses)
+:mod:`~vpr_nb.losses.placebo`           the placebo of DW-T-Loss: Eq. (9) with the batch's query-positive distances
+                                        permuted across its queries (:class:`PlaceboDWTripletLoss`), which keeps
+                                        the weights' values and removes their ranking
 :mod:`~vpr_nb.losses.multi_similarity`  Multi-Similarity (Wang et al., CVPR 2019), as used to train SALAD and
                                         CliqueMining through pytorch-metric-learning: :func:`multi_similarity_loss`
                                         (Eq. (6)), :func:`multi_similarity_miner` (Sec. 3.3) and
@@ -22,15 +25,16 @@ One idea per module, in the spirit of pytorch-metric-learning's ``losses/``; eve
 Loss objects, for the batch sources of :mod:`vpr_nb.training`: each holds its parameters, validated when
 it is built, and calls its loss function with them (the same floating-point operations):
 
-============================  ==============  ================================================  ================
-object                        paper equation  parameters                                        source
-============================  ==============  ================================================  ================
-:class:`TripletLoss`          Eq. (3)         ``margin``                                        TripletSource
-:class:`WeightedTripletLoss`  Eq. (4) x (3)   ``margin``, ``sigma``, ``eps``                    TripletSource
-:class:`CETripletLoss`        Eqs. (5)-(8)    (none)                                            TripletSource
-:class:`DWTripletLoss`        Eq. (9)         ``sigma``, ``eps``                                TripletSource
-:class:`MultiSimilarityLoss`  Wang Eq. (6)    ``alpha``, ``beta``, ``base``, ``miner_epsilon``  PlaceBatchSource
-============================  ==============  ================================================  ================
+==============================  ==============  ================================================  ================
+object                          paper equation  parameters                                        source
+==============================  ==============  ================================================  ================
+:class:`TripletLoss`            Eq. (3)         ``margin``                                        TripletSource
+:class:`WeightedTripletLoss`    Eq. (4) x (3)   ``margin``, ``sigma``, ``eps``                    TripletSource
+:class:`CETripletLoss`          Eqs. (5)-(8)    (none)                                            TripletSource
+:class:`DWTripletLoss`          Eq. (9)         ``sigma``, ``eps``                                TripletSource
+:class:`PlaceboDWTripletLoss`   Eq. (9)         ``sigma``, ``eps``, ``seed``                      TripletSource
+:class:`MultiSimilarityLoss`    Wang Eq. (6)    ``alpha``, ``beta``, ``base``, ``miner_epsilon``  PlaceBatchSource
+==============================  ==============  ================================================  ================
 
 Every default value lives once, in the ``DEFAULT_*`` constants of its loss's module (``DEFAULT_MARGIN``,
 ``DEFAULT_SIGMA``, ``DEFAULT_EPS`` in :mod:`~vpr_nb.losses.triplet`, ``DEFAULT_MS_*`` in
@@ -40,6 +44,7 @@ from __future__ import annotations
 
 from .infonce import LOCAL_NEGATIVES, local_infonce
 from .multi_similarity import MultiSimilarityLoss, multi_similarity_loss, multi_similarity_miner
+from .placebo import PlaceboDWTripletLoss, placebo_dw_triplet_loss, placebo_permutation
 from .registry import LOSSES, TRIPLET_LOSSES
 from .triplet import (
     CETripletLoss,
@@ -65,6 +70,8 @@ __all__ = [
     "weighted_triplet_loss",
     "ce_triplet_loss",
     "dw_triplet_loss",
+    "placebo_dw_triplet_loss",
+    "placebo_permutation",
     "multi_similarity_loss",
     "multi_similarity_miner",
     "local_infonce",
@@ -74,6 +81,7 @@ __all__ = [
     "WeightedTripletLoss",
     "CETripletLoss",
     "DWTripletLoss",
+    "PlaceboDWTripletLoss",
     "MultiSimilarityLoss",
     "LOSSES",
     "TRIPLET_LOSSES",

@@ -12,8 +12,9 @@
                                           of ``facebookresearch/dinov2`` (never downloads)
 :mod:`~vpr_nb.models.vpr_model`           :class:`VPRModel` and :func:`build_model`: backbone + aggregator
                                           (:mod:`vpr_nb.aggregation`); :data:`BACKBONES`, the name → builder map
-:mod:`~vpr_nb.models.data_init`           :func:`init_netvlad` (k-means) and :func:`init_salad` (standardised
-                                          head inputs): the heads' initialisations from training images
+:mod:`~vpr_nb.models.data_init`           :func:`init_netvlad` (k-means), :func:`init_salad` (standardised
+                                          head inputs) and :func:`init_salad_scores_from_kmeans` (SALAD's
+                                          scores from k-means): the heads' initialisations from training images
 :mod:`~vpr_nb.models.weights`             :func:`read_weights` (weights-only reads, one-line errors) and
                                           :func:`load_state_checked` (a state dict that must fit exactly)
 :mod:`~vpr_nb.models.image_checks`        the input check every backbone and :class:`VPRModel` apply
@@ -29,7 +30,7 @@ Images are float ``[B, 3, H, W]`` tensors, ImageNet-normalised as
 """
 from __future__ import annotations
 
-from .data_init import init_netvlad, init_salad
+from .data_init import init_netvlad, init_salad, init_salad_scores_from_kmeans, salad_scores_from_centroids
 from .dinov2 import DINOV2_HUB_ENV, DINOV2_MODELS, DINOv2Backbone, load_dinov2
 from .small_cnn import SmallCNN
 from .vgg16 import VGG16_WEIGHTS_URL, VGG16Backbone
@@ -38,4 +39,4 @@ from .weights import load_state_checked, read_weights
 
 __all__ = ["BACKBONE_NAMES", "BACKBONES", "DINOV2_HUB_ENV", "DINOV2_MODELS", "DINOv2Backbone", "SmallCNN",
            "VGG16Backbone", "VGG16_WEIGHTS_URL", "VPRModel", "build_model", "init_netvlad", "init_salad",
-           "load_dinov2", "load_state_checked", "read_weights"]
+           "init_salad_scores_from_kmeans", "salad_scores_from_centroids", "load_dinov2", "load_state_checked", "read_weights"]

@@ -32,7 +32,8 @@ _RANGES = ("building_width", "building_height", "tree_distance", "house_distance
 _SHARES = ("street_tree_share", "skyline_blockiness", "band_share", "shop_share", "car_share")
 _COUNTS = ("outer_blocks", "headings", "num_frames", "frames_per_group", "track_smoothing", "zone_frames",
            "house_every", "fence_every", "num_facade_types")
-_NON_NEGATIVE = ("position_jitter", "heading_jitter", "pitch_jitter", "occluder_rate", "colour_variation",
+_NON_NEGATIVE = ("position_jitter", "heading_jitter", "pitch_jitter", "occluder_rate", "distractor_rate",
+                 "colour_variation",
                  "condition_strength", "db_position_jitter", "db_heading_jitter", "street_tree_shift",
                  "tree_colour_variation", "style_colour_variation", "trees_per_frame", "track_curvature",
                  "house_yaw", "corner_remainder", "street_tree_inset", "kerb_margin", "roadside_spacing")
@@ -80,6 +81,8 @@ class WorldConfig:
     # --- route geometry ---
     num_frames: int = 900
     frame_spacing: float = 5.0
+    camera_spacing: float = 0.0                   # route density: a frame every this many m along the same track,
+                                                  # jitters x camera_spacing / frame_spacing (0 = every frame_spacing m)
     frames_per_group: int = 5                     # place groups (MSLS unique_cluster analogue)
     track_curvature: float = 0.04                 # heading change per 5 m of track per unit of smoothed noise (radians)
     track_smoothing: int = 60                     # frames of the moving average over the curvature noise
@@ -134,6 +137,8 @@ class WorldConfig:
     pitch_jitter: float = 1.0                     # std of horizon shift (pixels)
     occluder_rate: float = 0.6                    # mean number of occluders (cars/people) per query
     car_share: float = 0.65                       # share of the occluders that are cars (the rest pedestrians)
+    distractor_rate: float = 0.0                  # parked cars / pedestrians in 3-D, new at every visit (db and
+                                                  # queries): mean number per 10 m of street or track (0 = none)
     # --- splits and evaluation ---
     split_fractions: tuple[float, float, float] = (0.5, 0.2, 0.3)
     split_gap: float = 1.2                        # gap between splits, in units of pos_radius
@@ -157,6 +162,10 @@ class WorldConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not -180 <= self.camera_yaw <= 180:
             raise ValueError(f"camera_yaw must be in [-180, 180] degrees, got {self.camera_yaw}")
+        cs = self.camera_spacing
+        if isinstance(cs, bool) or not isinstance(cs, (int, float)) or not 0 <= cs < np.inf:
+            raise ValueError(f"camera_spacing must be a finite distance > 0 in metres (or 0: a frame every "
+                             f"frame_spacing m), got {cs!r}")
         if self.condition_strength > 1:
             raise ValueError(f"condition_strength must be in [0, 1], got {self.condition_strength}")
         for name in _COUNTS:
@@ -197,7 +206,8 @@ class WorldConfig:
 
 
 # Content knobs that are off by default and leave a world's fingerprint alone while they are off.
-OPTIONAL_CONTENT = ("camera_yaw", "roadside_spacing", "roadside_distance", "roadside_height", "roadside_width")
+OPTIONAL_CONTENT = ("camera_yaw", "roadside_spacing", "roadside_distance", "roadside_height", "roadside_width",
+                    "camera_spacing", "distractor_rate")
 _DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldConfig)}
 
 
@@ -212,6 +222,9 @@ def make_config(preset: str = "city", size: str = "tiny", **overrides) -> WorldC
         raise ValueError(f"unknown world option(s) {bad}; valid options: {sorted(valid)}")
     kw = {**kind.preset, **kind.sizes[size], **overrides}
     if kind.pos_radius_frames is not None and "pos_radius" not in overrides:
-        kw["pos_radius"] = kind.pos_radius_frames * kw.get("frame_spacing", WorldConfig.frame_spacing)
+        dense = kw.get("camera_spacing")   # the route's density knob: frames every camera_spacing m (kinds/route.py)
+        spacing = dense if isinstance(dense, (int, float)) and dense > 0 else kw.get("frame_spacing",
+                                                                                     WorldConfig.frame_spacing)
+        kw["pos_radius"] = kind.pos_radius_frames * spacing
         kw.setdefault("train_pos_radius", kw["pos_radius"])
     return WorldConfig(preset=preset, size=size, **kw)

@@ -16,7 +16,9 @@ class VPRDataset(Split):
 
     Images are uint8 (N, H, W, 3); UTM positions float64 (N, 2) in metres; headings in degrees;
     conditions are indices into ``condition_names``; splits are indices into ``SPLITS``;
-    ``*_place`` are place-group ids (the MSLS ``unique_cluster`` analogue used by CliqueMining).
+    ``*_place`` are place-group ids (the MSLS ``unique_cluster`` analogue used by CliqueMining);
+    ``*_labels`` are uint8 (N, H, W) content labels per pixel (:data:`~vpr_nb.synthetic.labels.LABEL_NAMES`)
+    when the world was made with ``make_dataset(..., labels=True)``, else None.
     """
 
     name: str
@@ -39,6 +41,8 @@ class VPRDataset(Split):
     train_pos_radius: float
     split_name: str = "all"
     extra: dict = field(default_factory=dict)
+    db_labels: np.ndarray | None = None
+    q_labels: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.db_images) + len(self.q_images)
@@ -60,7 +64,9 @@ class VPRDataset(Split):
         fields = {}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if f.name.startswith("db_"):
+            if v is None:
+                pass
+            elif f.name.startswith("db_"):
                 v = v[dm]
             elif f.name.startswith("q_"):
                 v = v[qm]

@@ -15,6 +15,7 @@ import numpy as np
 
 # segment materials (Scene.kind)
 WALL, TREE, POLE, FENCE = 0, 1, 2, 3
+DISTRACTOR = 4   # per-visit boxes (vpr_nb.synthetic.distractors): added per camera, never in a world's Scene
 
 
 def rgb(r: float, g: float, b: float) -> np.ndarray:

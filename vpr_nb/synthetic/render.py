@@ -5,7 +5,9 @@ casts one ray per pixel column against the vertical segments and draws, each sta
 stages before it left pixels empty, the walls / trees / poles / fences, the ground (the world kind's
 texture, ``scene.world.ground``), the far skyline and the sky; then fog, brightness and tint; then
 :func:`_postprocess` adds sensor noise, rain streaks and occluders (cars, pedestrians) and quantises
-to uint8.
+to uint8. Every stage also writes what it drew into a label map (:mod:`~vpr_nb.synthetic.labels`), which
+``render_all(..., labels=True)`` returns; per-visit distractors (:mod:`~vpr_nb.synthetic.distractors`) are
+segments appended to the scene per chunk, seen only by their own visit's cameras.
 
 The scene knobs it reads are :class:`~vpr_nb.synthetic.config.WorldConfig` fields (``image_size``,
 ``fov``, ``camera_height``, ``view_distance``, the conditions, ``car_share``); the constants below are
@@ -20,8 +22,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .conditions import condition_params, stack_conditions
+from .distractors import Distractors, Extension, extend_scene
 from .hashing import hash01
-from .layout import FENCE, TREE, WALL, Scene, rgb
+from .labels import DISTRACTOR_LABEL, GROUND_LABEL, OBJECT_LABEL, OCCLUDER_LABEL, SKY_LABEL, SKYLINE_LABEL
+from .layout import DISTRACTOR, FENCE, TREE, WALL, Scene, rgb
 
 if TYPE_CHECKING:
     from .config import WorldConfig
@@ -113,16 +117,19 @@ class _Hits:
 
 @dataclass
 class _Frame:
-    """The images being drawn: colour, planar depth (for the fog) and which pixels are drawn already."""
+    """The images being drawn: colour, planar depth (for the fog), which pixels are drawn already and what
+    they show (:data:`~vpr_nb.synthetic.labels.LABEL_NAMES`)."""
 
     img: np.ndarray      # (N, H, W, 3)
     depth: np.ndarray    # (N, H, W)
     filled: np.ndarray   # (N, H, W) bool
+    label: np.ndarray    # (N, H, W) uint8
 
-    def draw(self, n_idx, h_idx, w_idx, colour, depth) -> None:
+    def draw(self, n_idx, h_idx, w_idx, colour, depth, label) -> None:
         self.img[n_idx, h_idx, w_idx] = colour
         self.depth[n_idx, h_idx, w_idx] = depth
         self.filled[n_idx, h_idx, w_idx] = True
+        self.label[n_idx, h_idx, w_idx] = label
 
 
 def _camera_rays(cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray, pitch_px: np.ndarray) -> _Rays:
@@ -138,14 +145,18 @@ def _camera_rays(cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray, pit
     return _Rays(pos=pos, d=d, corr=corr, tan_el=rows / f)                       # vertical: same focal
 
 
-def _cast_rays(scene: Scene, cfg: WorldConfig, rays: _Rays, heading_deg: np.ndarray, layers: int) -> _Hits:
+def _cast_rays(scene: Scene, cfg: WorldConfig, rays: _Rays, heading_deg: np.ndarray, layers: int,
+               extra: Extension | None = None) -> _Hits:
     """Stage 1b: intersect every column ray with the vertical segments; keep the ``layers`` nearest hits.
 
     Per-camera culling (:func:`_visible_segments`) keeps the segments near the camera and inside the
     (widened) view frustum, gathered into a padded (N, S) table, so the ray/segment tests are N x W x S
-    with S small. Several layers are kept because trees and fences have gaps to see through."""
+    with S small. Several layers are kept because trees and fences have gaps to see through. ``extra``
+    appends per-camera segments (distractors): its scene holds ``scene``'s segments first, then them."""
     pos, d = rays.pos, rays.d
     cand = _visible_segments(scene, cfg, pos, heading_deg)                      # (N, S) indices, -1 = pad
+    if extra is not None:
+        scene, cand = extra.scene, np.concatenate([cand, extra.cand], 1)
     safe = np.maximum(cand, 0)
     A, e = scene.a[safe], (scene.b - scene.a)[safe]                              # (N, S, 2)
     AO = A - pos[:, None, :]
@@ -286,7 +297,8 @@ def _draw_segments(scene: Scene, cfg: WorldConfig, rays: _Rays, hits: _Hits, con
         on_trunk = np.zeros(len(sgp), dtype=bool) if trunk is None else \
             (scene.kind[sgp] == TREE) & trunk[n_idx, h_idx, w_idx]
         col = _shade_segment_pixels(scene, sgp, u[n_idx, h_idx, w_idx], z[n_idx, h_idx, w_idx], on_trunk, cond, n_idx)
-        frame.draw(n_idx, h_idx, w_idx, col, plan[n_idx, w_idx])
+        label = np.where(scene.kind[sgp] == DISTRACTOR, DISTRACTOR_LABEL, OBJECT_LABEL)
+        frame.draw(n_idx, h_idx, w_idx, col, plan[n_idx, w_idx], label)
 
 def _draw_ground(scene: Scene, cfg: WorldConfig, rays: _Rays, cond: dict, frame: _Frame) -> None:
     """Stage 3: the ground plane below the horizon where no segment was drawn, up to GROUND_RANGE x
@@ -302,7 +314,7 @@ def _draw_ground(scene: Scene, cfg: WorldConfig, rays: _Rays, cond: dict, frame:
     gcol, snow = scene.world.ground(gp, scene.layout, cond["snow"][n_idx])
     gcol = gcol * (1 - snow[:, None]) + SNOW_COLOUR * snow[:, None]
     amb = cond["ambient"][n_idx]
-    frame.draw(n_idx, h_idx, w_idx, gcol * (0.6 + 0.4 * amb)[:, None], tg[n_idx, h_idx])
+    frame.draw(n_idx, h_idx, w_idx, gcol * (0.6 + 0.4 * amb)[:, None], tg[n_idx, h_idx], GROUND_LABEL)
 
 
 def _draw_sky(scene: Scene, rays: _Rays, cond: dict, frame: _Frame) -> None:
@@ -326,7 +338,7 @@ def _draw_sky(scene: Scene, rays: _Rays, cond: dict, frame: _Frame) -> None:
     grad = (0.85 + 0.15 * np.clip(h_idx / H * 2, 0, 1))[:, None]
     farc = 0.45 * skyc + 0.55 * scene.world.skyline_colour * (1 - 0.5 * snow)[:, None] + 0.45 * snow[:, None] * SNOWY_SKYLINE_COLOUR
     frame.draw(n_idx, h_idx, w_idx, np.where(is_sky[:, None], skyc * grad, farc),
-               np.where(is_sky, np.inf, SKYLINE_DEPTH))
+               np.where(is_sky, np.inf, SKYLINE_DEPTH), np.where(is_sky, SKY_LABEL, SKYLINE_LABEL))
 
 
 def _atmosphere(img: np.ndarray, depth: np.ndarray, cond: dict) -> np.ndarray:
@@ -342,8 +354,9 @@ def _atmosphere(img: np.ndarray, depth: np.ndarray, cond: dict) -> np.ndarray:
 
 
 def _render(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray, pitch_px: np.ndarray,
-            conds: list[dict], layers: int = LAYERS) -> np.ndarray:
-    """Ray-cast a batch of cameras. Returns float images (N, H, W, 3) in [0, 1] before noise.
+            conds: list[dict], layers: int = LAYERS, extra: Extension | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast a batch of cameras. Returns float images (N, H, W, 3) in [0, 1] before noise, and their
+    label maps (N, H, W); ``extra``: per-camera segments (:func:`~vpr_nb.synthetic.distractors.extend_scene`).
 
     Each stage draws only the pixels the stages before it left empty:
 
@@ -356,20 +369,22 @@ def _render(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading_deg: np.nda
     H, W = cfg.image_size
     N = len(pos)
     rays = _camera_rays(cfg, pos, heading_deg, pitch_px)
-    hits = _cast_rays(scene, cfg, rays, heading_deg, layers)
+    hits = _cast_rays(scene, cfg, rays, heading_deg, layers, extra)
+    if extra is not None:
+        scene = extra.scene
     cond = stack_conditions(conds)
     frame = _Frame(img=np.zeros((N, H, W, 3)), depth=np.full((N, H, W), np.inf),
-                   filled=np.zeros((N, H, W), dtype=bool))
+                   filled=np.zeros((N, H, W), dtype=bool), label=np.zeros((N, H, W), dtype=np.uint8))
     _draw_segments(scene, cfg, rays, hits, cond, frame)
     _draw_ground(scene, cfg, rays, cond, frame)
     _draw_sky(scene, rays, cond, frame)
-    return _atmosphere(frame.img, frame.depth, cond)
+    return _atmosphere(frame.img, frame.depth, cond), frame.label
 
 
 def _postprocess(img: np.ndarray, conds: list[dict], occluders: np.ndarray, car_share: float,
-                 rng: np.random.Generator) -> np.ndarray:
+                 rng: np.random.Generator, label: np.ndarray) -> np.ndarray:
     """Occluders (a share ``car_share`` of cars: wide boxes in the lower half; the rest pedestrians:
-    thin tall boxes), sensor noise and rain streaks, then uint8."""
+    thin tall boxes; marked in ``label``, in place), sensor noise and rain streaks, then uint8."""
     N, H, W, _ = img.shape
     img = img.copy()
     for i in range(N):
@@ -382,6 +397,7 @@ def _postprocess(img: np.ndarray, conds: list[dict], occluders: np.ndarray, car_
                 x, y = int(rng.integers(0, W - w)), int(rng.integers(H // 3, H - h // 2))
             colr = rng.uniform(0.05, 0.95, 3) * (0.4 + 0.6 * conds[i]["bright"])
             img[i, max(y, 0):y + h, max(x, 0):x + w] = colr
+            label[i, max(y, 0):y + h, max(x, 0):x + w] = OCCLUDER_LABEL
         noise = conds[i]["noise"]
         img[i] += rng.normal(0, noise, (H, W, 3))
         if noise > RAIN_NOISE:  # rain streaks
@@ -392,19 +408,26 @@ def _postprocess(img: np.ndarray, conds: list[dict], occluders: np.ndarray, car_
 
 def render_all(scene: Scene, cfg: WorldConfig, pos: np.ndarray, heading: np.ndarray, pitch: np.ndarray,
                cond_names: list[str], occluders: np.ndarray, rng: np.random.Generator,
-               chunk: int = RENDER_CHUNK) -> np.ndarray:
+               chunk: int = RENDER_CHUNK, *, distractors: Distractors | None = None,
+               labels: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """uint8 images (N, H, W, 3) of N cameras at ``pos`` (N, 2) facing ``heading`` (degrees), horizon
     shifted by ``pitch`` (pixels), in conditions ``cond_names``, with ``occluders`` each; ``rng`` draws
-    the occluders and the sensor noise, in the order of the chunks."""
+    the occluders and the sensor noise, in the order of the chunks. ``distractors`` (one visit per camera,
+    :func:`~vpr_nb.synthetic.distractors.place_distractors`) are drawn with the scene; ``rng`` draws
+    nothing for them. With ``labels`` also returns the uint8 label maps (N, H, W)
+    (:data:`~vpr_nb.synthetic.labels.LABEL_NAMES`); the images are the same either way."""
     params = {c: condition_params(cfg, c) for c in set(cond_names)}
     out = np.empty((len(pos), *cfg.image_size, 3), dtype=np.uint8)
+    out_label = np.empty((len(pos), *cfg.image_size), dtype=np.uint8)
     # chunk spatially coherent cameras together (fewer candidate segments per chunk)
     order = np.lexsort((pos[:, 1], np.round(pos[:, 0] / CHUNK_STRIP)))
     for s in range(0, len(pos), chunk):
         idx = order[s:s + chunk]
         conds = [params[cond_names[i]] for i in idx]
-        img = _render(scene, cfg, pos[idx], heading[idx], pitch[idx], conds)
-        out[idx] = _postprocess(img, conds, occluders[idx], cfg.car_share, rng)
-    return out
+        extra = None if distractors is None else extend_scene(scene, distractors.take(idx), pos[idx])
+        img, label = _render(scene, cfg, pos[idx], heading[idx], pitch[idx], conds, extra=extra)
+        out[idx] = _postprocess(img, conds, occluders[idx], cfg.car_share, rng, label)
+        out_label[idx] = label
+    return (out, out_label) if labels else out
 
 

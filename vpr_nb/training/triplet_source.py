@@ -2,10 +2,10 @@
 
 :class:`TripletSource` follows NetVLAD (Arandjelović et al., CVPR 2016, Sec. 4): at the start of every epoch
 (and every ``cache_refresh`` queries) the descriptors of the training images are recomputed; each query gets
-its best potential positive (within the training radius) and its M hardest negatives (beyond the evaluation
-radius) from :func:`vpr_nb.mining.mine_triplets`; the loss is a :class:`vpr_nb.losses.TripletFamilyLoss`
-object, one of DW-T-Loss's Eqs. (3), (4)x(3), (5)-(8), (9). The source builds batches; the loss object it is
-given holds the loss's parameters (margin, sigma, eps, ...).
+its best potential positive (within the training radius; or, with ``positive="random"``, one drawn at random)
+and its M hardest negatives (beyond the evaluation radius) from :func:`vpr_nb.mining.mine_triplets`; the loss
+is a :class:`vpr_nb.losses.TripletFamilyLoss` object, one of DW-T-Loss's Eqs. (3), (4)x(3), (5)-(8), (9). The
+source builds batches; the loss object it is given holds the loss's parameters (margin, sigma, eps, ...).
 """
 from __future__ import annotations
 
@@ -16,10 +16,19 @@ from .. import losses as L
 from .._checks import check_int, check_positive, validated_inputs
 from ..evaluation import compute_descriptors
 from ..image_tensors import images_to_tensor
-from ..mining import mine_triplets
+from ..mining import check_positive_rule, mine_triplets
 from ..split import check_split
 from .device import unwrap_ddp
 from .divergence import NotFinite
+
+
+def _positive_seed(rng: np.random.Generator) -> np.random.SeedSequence:
+    """A child of ``rng``'s SeedSequence (no draw from ``rng``): the seed of an epoch's random positives."""
+    ss = getattr(rng.bit_generator, "seed_seq", None)
+    if not isinstance(ss, np.random.SeedSequence):
+        raise ValueError("positive='random' seeds its draws from the step rng's SeedSequence: pass a generator made "
+                         "by np.random.default_rng(seed), e.g. default_rng([seed, epoch])")
+    return ss.spawn(1)[0]
 
 
 class TripletSource:
@@ -42,12 +51,18 @@ class TripletSource:
         neg_radius: negatives lie beyond this many metres (default: the split's evaluation radius,
             NetVLAD's 25 m). On a densely sampled route (positives = +-1 frame) a larger radius keeps
             near-duplicates of the positive out of the negatives.
+        positive: ``"best"`` (default: NetVLAD's best potential positive, nearest in descriptor space) or
+            ``"random"``: one potential positive drawn uniformly at random, from a generator seeded by the
+            step's ``rng`` (its ``SeedSequence``, i.e. ``(seed, epoch)`` in :func:`vpr_nb.training.train`) and
+            the query index, without drawing from ``rng``: the draw depends neither on the model nor on the
+            batch order, runs with the same seed get the same positives, and the negatives' draws are the best
+            rule's. DW-T-Loss's Eq. (4) ranks positives by distance, which the best rule keeps nearly constant.
     The per-step loss is the loss summed over the step's triplets divided by the number of queries.
     """
 
     def __init__(self, split, loss: L.TripletFamilyLoss = L.TripletLoss(), *, batch_size: int = 16,
                  num_negatives: int = 5, num_candidates: int = 300, cache_refresh: int | None = None,
-                 max_heading_diff: float | None = None, neg_radius: float | None = None):
+                 max_heading_diff: float | None = None, neg_radius: float | None = None, positive: str = "best"):
         if not isinstance(loss, L.TripletFamilyLoss):
             raise ValueError(f"loss must be a triplet-family loss object (vpr_nb.losses.TripletLoss(margin), "
                              f"WeightedTripletLoss(margin, sigma, eps), CETripletLoss(), DWTripletLoss(sigma, eps)), "
@@ -62,6 +77,7 @@ class TripletSource:
         self.num_candidates = check_int(num_candidates, "num_candidates")
         self.cache_refresh = None if cache_refresh is None else check_int(cache_refresh, "cache_refresh")
         self.max_heading_diff = max_heading_diff
+        self.positive = check_positive_rule(positive)
         self.neg_radius = split.pos_radius if neg_radius is None else check_positive(neg_radius, "neg_radius")
         self.q, self.db = split.q_images, split.db_images
         self.positives = split.positives(split.train_pos_radius)   # per query, inside its region
@@ -141,6 +157,9 @@ class TripletSource:
         heading = {}
         if self.max_heading_diff is not None:
             heading = dict(q_heading=s.q_heading, db_heading=s.db_heading, max_heading_diff=self.max_heading_diff)
+        pick = {}
+        if self.positive != "best":
+            pick = dict(positive=self.positive, positive_seed=_positive_seed(rng))
         order = rng.permutation(len(self.q))
         refresh = self.cache_refresh or len(order)
         for start in range(0, len(order), self.batch_size):
@@ -152,7 +171,7 @@ class TripletSource:
                                    neg_radius=self.neg_radius, num_negatives=self.num_negatives,
                                    num_candidates=min(self.num_candidates, len(self.db)),
                                    neg_cache=self.neg_cache, rng=rng, positives=[self.positives[i] for i in ids],
-                                   near=[self.near[i] for i in ids], **heading)
+                                   near=[self.near[i] for i in ids], **heading, **pick)
             v = np.flatnonzero(tb.valid)
             total = len(v)
             if total < world:

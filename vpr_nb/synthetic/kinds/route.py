@@ -6,8 +6,22 @@ field, village) that change slowly, and roadside objects close to the track (mor
 degrees (45 by default; 0 looks forward) to the side takes one frame every ``frame_spacing`` metres; the
 database is summer, the queries winter, frame-aligned. Positives: the same frame +-1
 (``pos_radius = 1.01 * frame_spacing``). Splits are bands of frames.
+
+**Route density** (``camera_spacing`` in metres; 0, the default, is off): the scene is laid out as always, on
+``num_frames`` track points ``frame_spacing`` metres apart (the same draws, so the same track, trees, houses,
+...), but the cameras take one frame every ``camera_spacing`` metres along that same track,
+``floor((num_frames - 1) * frame_spacing / camera_spacing) + 1`` frames in all (:func:`route_frames`). The
+query jitters scale with the spacing: position and heading jitter are ``position_jitter`` and
+``heading_jitter`` times ``camera_spacing / frame_spacing`` (a query strays as far, in frames, as at the
+layout's spacing), and the positive radius is ``1.01 * camera_spacing`` (frames i-1, i, i+1).
+``frames_per_group`` counts camera frames. A denser route has more frames per metre of the same world, so a
+model's wrong top-1 falls more often a few frames from the right one (a near miss, what CliqueMining's batches
+are made of; notebook 07). With ``camera_spacing=0`` (the default) every draw and every pixel is today's;
+``camera_spacing == frame_spacing`` gives the same frames too.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -34,9 +48,39 @@ ROADSIDE_ALBEDO = (0.05, 0.95)     # their colour channels are drawn uniformly i
 BALLAST_COLOUR, RAIL_COLOUR, GRASS_COLOUR = rgb(0.38, 0.34, 0.30), rgb(0.6, 0.6, 0.62), rgb(0.25, 0.42, 0.18)
 
 
+class RouteFrames(NamedTuple):
+    """Where the route's cameras stand: one frame every ``spacing`` metres along the track, ``count`` frames,
+    the query jitters multiplied by ``jitter_scale`` (``camera_spacing / frame_spacing``; 1 when off)."""
+
+    spacing: float
+    count: int
+    jitter_scale: float
+
+
+def route_frames(cfg) -> RouteFrames:
+    """The camera frames of a route config: every ``frame_spacing`` m (``num_frames`` of them) when
+    ``camera_spacing`` is 0, else every ``camera_spacing`` m along the same track (module docstring)."""
+    if not cfg.camera_spacing > 0:
+        return RouteFrames(float(cfg.frame_spacing), int(cfg.num_frames), 1.0)
+    length = (cfg.num_frames - 1) * cfg.frame_spacing
+    count = int(np.floor(length / cfg.camera_spacing + 1e-9)) + 1
+    return RouteFrames(float(cfg.camera_spacing), count, cfg.camera_spacing / cfg.frame_spacing)
+
+
 def _check(cfg) -> None:
     if cfg.track_smoothing > TRACK_PAD:
         raise ValueError(f"track_smoothing must be <= {TRACK_PAD} frames, got {cfg.track_smoothing}")
+    if cfg.camera_spacing > 0:
+        spacing, count, _ = route_frames(cfg)
+        gap = int(np.ceil(cfg.pos_radius * cfg.split_gap / spacing))
+        split = split_bands(np.arange(count, dtype=float), 0, count, cfg.split_fractions, gap=gap)
+        empty = [k for k in range(3) if not (split == k).any()]
+        if empty:
+            length = (cfg.num_frames - 1) * cfg.frame_spacing
+            raise ValueError(f"camera_spacing={cfg.camera_spacing} m does not fit the track: its "
+                             f"{length:g} m (num_frames={cfg.num_frames} x frame_spacing={cfg.frame_spacing} m) "
+                             f"hold {count} frame(s), too few for three splits (split(s) {empty} would be empty); "
+                             f"use a smaller camera_spacing or a longer track (num_frames)")
 
 
 def _track(cfg, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -125,21 +169,34 @@ def _roadside(store: SegmentStore, cfg, rng: np.random.Generator, track, heading
         store.add(c - half, c + half, bottom, top, np.full(m, POLE), np.zeros(m), colour, np.zeros(m))
 
 
+def _along_track(track: np.ndarray, heading: np.ndarray, frame_spacing: float, frames: RouteFrames):
+    """Positions and headings (rad) every ``frames.spacing`` m along the track polyline (point k to k+1 runs
+    ``frame_spacing`` m along ``heading[k]``, :func:`_track`)."""
+    arc = np.arange(frames.count) * frames.spacing
+    k = np.minimum(np.floor(arc / frame_spacing + 1e-9).astype(int), len(track) - 1)
+    off = np.maximum(arc - k * frame_spacing, 0.0)
+    return track[k] + off[:, None] * np.stack([np.cos(heading[k]), np.sin(heading[k])], 1), heading[k]
+
+
 def cameras(cfg, rng: np.random.Generator, scene: Scene) -> Cameras:
     """One database camera per frame, looking along the track (turned ``camera_yaw`` degrees to the
     left: a sideways view, in which near content moves across the image); its query jittered along
     the track and in heading. A query is tagged with its frame's track position (Nordland's ground truth is
-    frame-aligned), so positives within 1.01 x frame_spacing are exactly frames i-1, i, i+1; the
-    along-track jitter only moves the rendered camera."""
+    frame-aligned), so positives within 1.01 x the frame spacing are exactly frames i-1, i, i+1; the
+    along-track jitter only moves the rendered camera. Frames stand every ``frame_spacing`` m on the
+    track's points, or every ``camera_spacing`` m along it with the jitters scaled (:func:`route_frames`)."""
+    frames_at = route_frames(cfg)
     track, heading = scene.layout["track"], scene.layout["heading"]
+    if cfg.camera_spacing > 0:
+        track, heading = _along_track(track, heading, cfg.frame_spacing, frames_at)
     n = len(track)
     frames = np.arange(n)
     db_pos = track.copy()
     db_head = (np.degrees(heading) + cfg.camera_yaw) % 360
     fwd = np.stack([np.cos(heading), np.sin(heading)], 1)
-    q_pos = track + fwd * rng.normal(0, cfg.position_jitter, n)[:, None]
-    q_head = (db_head + rng.normal(0, cfg.heading_jitter, n)) % 360
-    gap_frames = int(np.ceil(cfg.pos_radius * cfg.split_gap / cfg.frame_spacing))
+    q_pos = track + fwd * rng.normal(0, cfg.position_jitter * frames_at.jitter_scale, n)[:, None]
+    q_head = (db_head + rng.normal(0, cfg.heading_jitter * frames_at.jitter_scale, n)) % 360
+    gap_frames = int(np.ceil(cfg.pos_radius * cfg.split_gap / frames_at.spacing))
     split = split_bands(frames.astype(float), 0, n, cfg.split_fractions, gap=gap_frames)
     place = frames // cfg.frames_per_group
     return Cameras(db_pos=db_pos, db_heading=db_head, db_place=place, db_split=split, q_pos=q_pos,
@@ -162,9 +219,9 @@ def ground(gp: np.ndarray, plan: dict, snow: np.ndarray) -> tuple[np.ndarray, np
 ROUTE = WorldKind(
     name="route", description=__doc__.splitlines()[0], layout=layout, cameras=cameras, ground=ground,
     skyline_colour=rgb(0.30, 0.40, 0.42),
-    fields=frozenset({"num_frames", "frame_spacing", "frames_per_group", "track_curvature", "track_smoothing",
-                      "zone_frames", "zone_tree_density", "zone_house_share", "zone_fence_share", "trees_per_frame",
-                      "tree_distance", "house_every", "house_distance", "house_width", "house_depth", "house_height",
+    fields=frozenset({"num_frames", "frame_spacing", "camera_spacing", "frames_per_group", "track_curvature",
+                      "track_smoothing", "zone_frames", "zone_tree_density", "zone_house_share", "zone_fence_share",
+                      "trees_per_frame", "tree_distance", "house_every", "house_distance", "house_width", "house_depth", "house_height",
                       "house_yaw", "pole_spacing", "pole_offset", "pole_height", "fence_every", "fence_offset",
                       "fence_height", "camera_yaw", "roadside_spacing", "roadside_distance",
                       "roadside_height", "roadside_width"}),
