@@ -94,6 +94,13 @@ def child(parts: list[str]) -> dict:
         t = time.process_time()
         fine_tune(Method("netvlad", "netvlad"), ds.train, ds.val, recipe, seed=0, lr=RECIPE.lr)
         out["NetVLAD fine-tune, 4 epochs"] = time.process_time() - t
+        # which convolution kernels a (1-epoch) fine-tune calls, by the profiler's operator names
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            fine_tune(Method("netvlad", "netvlad"), ds.train, ds.val, dataclasses.replace(recipe, max_epochs=1),
+                      seed=0, lr=RECIPE.lr)
+        names = {e.key for e in prof.key_averages()}
+        out["nnpack calls"] = sorted(n for n in names if "nnpack" in n.lower())
+        out["onednn calls"] = sorted(n for n in names if "mkldnn" in n.lower())
     return out
 
 
@@ -121,8 +128,11 @@ def main() -> int:
         runs[pinned].append(run_child(pinned_environ(native_env) if pinned else native_env, parts))
     print(f"pinned child: pinned={runs[True][0]['pinned']}, oneDNN convolutions={runs[True][0]['onednn']}, "
           f"NNPACK={runs[True][0]['nnpack']}; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(f"pinned fine-tune, profiled: NNPACK operators {runs[True][0].get('nnpack calls', '-')}, oneDNN "
+          f"operators {runs[True][0].get('onednn calls', '-')}; native: NNPACK {runs[False][0].get('nnpack calls', '-')}, "
+          f"oneDNN {runs[False][0].get('onednn calls', '-')}")
     for key in runs[True][0]:
-        if key in ("pinned", "nnpack", "onednn"):
+        if key in ("pinned", "nnpack", "onednn", "nnpack calls", "onednn calls"):
             continue
         p = statistics.mean(r[key] for r in runs[True])
         n = statistics.mean(r[key] for r in runs[False])

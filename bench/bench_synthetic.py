@@ -2,7 +2,7 @@
 
 For each preset (``make_dataset(preset)``, size ``tiny``, seed 0, all splits) it compares the package's
 renderer, which ray-casts spatially coherent chunks of 32 cameras at once, with the naive version of
-the same renderer: one camera per call (``_render_all(..., chunk=1)``). Both must give identical
+the same renderer: one camera per call (``render_all(..., chunk=1)``). Both must give identical
 pixels (checked: the run fails otherwise). Every printed number is a ratio measured in this run:
 
 - **time**: CPU seconds of ``make_dataset`` with one camera per call / batched (best of ``--repeats``
@@ -26,19 +26,21 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from vpr_nb import synthetic  # noqa: E402
-from vpr_nb.synthetic import make_dataset  # noqa: E402
+from vpr_nb.synthetic import make_dataset, world  # noqa: E402
 
 
 @contextlib.contextmanager
 def one_camera_per_call():
     """``make_dataset`` with its renderer called for one camera at a time (the naive loop)."""
-    defaults = synthetic._render_all.__defaults__
-    synthetic._render_all.__defaults__ = (1,)
+    batched = world.render_all
+
+    def one_camera(*args, **kwargs):
+        return batched(*args[:8], 1, **kwargs)           # chunk (the 9th argument): one camera per call
+    world.render_all = one_camera
     try:
         yield
     finally:
-        synthetic._render_all.__defaults__ = defaults
+        world.render_all = batched
 
 
 def run(preset: str, naive: bool):

@@ -544,10 +544,10 @@ plt.show()
 # %% [markdown]
 # **Reading the result** (reproduce profile, 5 seeds).
 #
-# * *Controls.* Both dense arms reach or beat the frozen backbone + GeM (random +0.058 ± 0.019, beyond 2 SE;
-#   cliques +0.008 ± 0.012). Sparse only ends below it (−0.083 ± 0.021), so the paper's comparison is
+# * *Controls.* Both dense arms reach or beat the frozen backbone + GeM (random +0.064 ± 0.010, beyond 2 SE;
+#   cliques −0.000 ± 0.015). Sparse only ends below it (−0.122 ± 0.015), so the paper's comparison is
 #   inconclusive.
-# * *The ablation goes against the paper at this scale.* Random dense places beat cliques by about 5 R@1 points,
+# * *The ablation goes against the paper at this scale.* Random dense places beat cliques by about 6 R@1 points,
 #   beyond 2 SE, and on the mis-ordering probabilities and top-5 order.
 # * *Possible causes, not isolated.* Clique places span about a quarter of the distances of random ones, and
 #   their hardest negatives are as alike as their positives.

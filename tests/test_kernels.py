@@ -10,9 +10,10 @@ import torch
 from vpr_nb import kernels
 from vpr_nb.training import TrainConfig, make_optimizer
 
-# The fingerprint of the pinned kernels with torch 2.13.0 on x86-64, recorded on an AMD EPYC. (On an Intel Xeon the
-# native kernels trained other NetVLAD and SALAD rows; the pinned ones gave these rows' bits while oneDNN still
-# ran the convolutions, and the convolutions' own hashes without oneDNN were equal on both.)
+# The fingerprint of the pinned kernels with torch 2.13.0 on x86-64, recorded on an AMD EPYC with convolutions
+# through neither oneDNN nor NNPACK. (On an Intel Xeon the native kernels trained other NetVLAD and SALAD rows; the
+# pinned ones gave the same bits as the EPYC while oneDNN still ran the convolutions, and the convolutions' own
+# hashes without oneDNN were equal on both; this configuration has not been run there yet.)
 PINNED_FINGERPRINT = {"render": "c36f5ce5cd2919bf", "features": "3353aa044943d204", "kmeans": "e385dd85c75faf86",
                       "search": "8f99548501f57c5e", "netvlad": "51539dd49d2ce43f", "salad": "b2880f0f1e55b9c6"}
 FINGERPRINT_BACKBONE = "b561b563a1cbb616cc1bb3813e113de089ea41b5119b884ba0ec5840e5c662eb"   # its card's sha256

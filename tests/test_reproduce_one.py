@@ -84,18 +84,18 @@ def test_the_estimate_comes_from_the_committed_run_and_the_last_timed_run(tmp_pa
     _results_file(tmp_path / "03_loss.json", {"rows": {}, "seconds": 3694.9}, commit="a464538")
     est = one.estimate("03_loss", "reproduce", tmp_path)
     assert (est.low, est.high) == (3694.9, one.MEASURED_MINUTES["03"] * 60)
-    assert est.text() == "about 62–64 min"
+    assert est.text() == "about 62–66 min"
     assert "its committed results took 62 min (2026-12-05, a464538)" in est.source
-    assert f"the last timed make reproduce ({one.TIMED_COMMIT}): 64 min" in est.source
+    assert f"the last timed make reproduce ({one.TIMED_COMMIT}): 66 min" in est.source
     line = one.plan_line("03_loss", "reproduce", est)
-    assert line.startswith("[plan] 03_loss.ipynb, reproduce profile: about 62–64 min on 2 cores (its committed")
+    assert line.startswith("[plan] 03_loss.ipynb, reproduce profile: about 62–66 min on 2 cores (its committed")
 
 
 def test_the_estimate_without_committed_results_or_without_any_timing(tmp_path):
     est = one.estimate("02_base", "reproduce", tmp_path)                        # 02 keeps no committed results
-    assert est.low == est.high == one.MEASURED_MINUTES["02"] * 60 and est.text() == "about 3.4 min"
+    assert est.low == est.high == one.MEASURED_MINUTES["02"] * 60 and est.text() == "about 6.6 min"
     (tmp_path / "07_x.json").write_text("{not json")                             # unreadable: the table only
-    assert one.estimate("07_x", "reproduce", tmp_path).text() == "about 20 min"
+    assert one.estimate("07_x", "reproduce", tmp_path).text() == "about 22 min"
     unknown = one.estimate("42_new", "reproduce", tmp_path)
     assert unknown.low is None and unknown.text() == "no recorded time"
     assert one.progress_line("42_new", 90, unknown) == "[....] 42_new.ipynb: 1.5 min so far"
@@ -254,7 +254,7 @@ def test_run_notebook_alone_writes_beside_the_committed_results_and_compares(tmp
     assert RESULTS_DIR_ENV not in os.environ and one.ALLOW_DIRTY_ENV not in os.environ
     assert committed_file.read_bytes() == before                                # the committed results are kept
     printed = capsys.readouterr().out
-    assert printed.startswith("[plan] 03_loss.ipynb, reproduce profile: about 62–64 min on 2 cores")
+    assert printed.startswith("[plan] 03_loss.ipynb, reproduce profile: about 62–66 min on 2 cores")
     assert f"[plan] results go to {out / 'results'}/ ({committed}/ is not touched)" in printed   # outside the cwd
     assert "| rows / DW-T-Loss / R@1 | 0.8500 (mean of 2) | 0.8800 (mean of 2) | +0.0300 |" in printed
     assert (out / "comparison.md").read_text(encoding="utf-8") in printed

@@ -115,3 +115,13 @@ def test_distractor_rate_is_checked_and_neutral_in_the_fingerprint():
         make_config("city", distractor_rate=-1.0)
     with pytest.raises(ValueError, match="labels"):
         make_dataset("city", 0, labels="yes")
+
+
+def test_take_queries_slices_every_query_field_and_keeps_the_missing_ones():
+    tr = make_dataset("city", 0, blocks=(3, 2)).train
+    sub = tr.take_queries(np.array([0, 2]))
+    assert len(sub.q_images) == 2 and sub.q_labels is None and sub.db_images is tr.db_images
+    assert np.array_equal(sub.q_utm, tr.q_utm[[0, 2]])
+    assert np.array_equal(tr.take_queries(np.arange(len(tr.q_utm)) < 3).q_heading, tr.q_heading[:3])
+    with pytest.raises(ValueError, match="outside"):
+        tr.take_queries(np.array([len(tr.q_utm)]))

@@ -19,7 +19,9 @@ Measured with :func:`vpr_nb.fingerprint.fingerprint` (six Adam steps of NetVLAD 
 pins with the fused update give the same bits on both; with MKL in its ``AVX2`` mode the SALAD row still
 differs (its Sinkhorn's ``logsumexp``), and with the unfused update both rows differ (MKL's ``sqrt``).
 Convolutions run without oneDNN and without NNPACK, whose blocks are sized by the processor's cache
-(:func:`apply_in_process`), so an image's map is also the same bits in any batch.
+(:func:`apply_in_process`), so an image's map is also the same bits in any batch. This last configuration
+(convolutions as MKL products, the 1x1 layers as one product over rows) has been run on the AMD EPYC only;
+``tests/test_kernels.py``'s fingerprint test says so, naming the processor, where it computes other bits.
 
 The variables must be set before the libraries start, i.e. in the environment of the process that imports
 them: :func:`pinned_environ` gives it for a child process (a kernel, a worker), ``python -m vpr_nb.kernels

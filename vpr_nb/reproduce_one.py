@@ -27,9 +27,9 @@ from pathlib import Path
 
 # Minutes each notebook took in the last timed `make reproduce` (docs/reproduction.md's table, its last row:
 # one run, --jobs 2, pinned kernels, on the 2-core machine); tests/test_reproduce_one.py keeps the two equal.
-TIMED_COMMIT = "7baa858"
-MEASURED_MINUTES = {"00": 0.6, "01": 1.4, "02": 3.4, "03": 64.3, "04": 5.9, "05": 34.2, "06": 7.2, "07": 19.9,
-                    "08": 1.5}
+TIMED_COMMIT = "d55e43e"
+MEASURED_MINUTES = {"00": 0.7, "01": 2.1, "02": 6.6, "03": 65.6, "04": 17.9, "05": 40.7, "06": 9.3, "07": 21.7,
+                    "08": 1.8}
 CI_MINUTES = 1.0                        # every notebook's ci profile runs in about a minute (README)
 ALLOW_DIRTY_ENV = "VPR_NB_ALLOW_DIRTY"  # vpr_nb.results.ALLOW_DIRTY_ENV: results outside the repository may come
                                         # from a working tree with changes (a student's edited notebook)

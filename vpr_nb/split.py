@@ -14,6 +14,7 @@ keeps cities apart, for positives as for the samplers.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -127,6 +128,29 @@ class Split:
     @property
     def has_places(self) -> bool:
         return self.db_place is not None
+
+    def take_queries(self, index) -> "Split":
+        """A copy of this split with only the queries at ``index`` (an index array or a boolean mask): every
+        per-query field (``q_*``) is taken at ``index``, those that are None stay None, and the database is
+        shared. For a split type that is a dataclass (the synthetic world's, the real datasets')."""
+        if not dataclasses.is_dataclass(self):
+            raise ValueError(f"take_queries needs a dataclass split, got {type(self).__name__}")
+        index = np.asarray(index)
+        if index.dtype == bool:
+            index = np.flatnonzero(index)
+        if index.ndim != 1 or not np.issubdtype(index.dtype, np.integer):
+            raise ValueError(f"index must be a 1-D array of query indices or a boolean mask, got {index.dtype} "
+                             f"with shape {index.shape}")
+        n = len(self.q_utm)
+        if len(index) and (index.min() < -n or index.max() >= n):
+            raise ValueError(f"index holds query indices outside 0..{n - 1}")
+
+        def take(value):
+            if value is None:
+                return None
+            return [value[i] for i in index] if isinstance(value, list) else value[index]
+        return dataclasses.replace(self, **{f.name: take(getattr(self, f.name)) for f in dataclasses.fields(self)
+                                            if f.name.startswith("q_")})
 
     def positives(self, radius: float | None = None) -> list[np.ndarray]:
         """Database indices within ``radius`` (default ``pos_radius``) of each query, sorted, per region
