@@ -82,9 +82,10 @@ NUMERICAL_LIBRARIES = ("numpy", "torch", "scipy", "faiss", "matplotlib")
 NATIVE_ENV = "VPR_NB_NATIVE_KERNELS"     # =1: leave the kernels to the libraries (faster; other trained numbers)
 # How far a trained number in [0, 1] (a Recall@N, a cosine, a probability) moved when the notebooks ran on this
 # machine's own kernels instead of the pinned ones: the CI profiles of 02-07 executed both ways on one AMD EPYC
-# (AVX-512), largest difference per notebook 0.060 (02), 0.000 (03), 0.006 (04), 0.081 (05), 0.000 (06),
-# 0.087 (07); rounded up. The reproduce profiles' multi-seed means were not measured this way.
-UNPINNED_DIFFERENCE = 0.09
+# (AVX-512), largest difference per notebook 0.090 (02), 0.000 (03), 0.000 (04), 0.005 (05), 0.000 (06),
+# 0.034 (07) (with the earlier pins, NNPACK on: up to 0.087); rounded up. The reproduce profiles' multi-seed
+# means were not measured this way.
+UNPINNED_DIFFERENCE = 0.10
 
 
 def pin_before_start() -> str | None:
