@@ -41,18 +41,20 @@ Modules, one job each:
 - :mod:`~vpr_nb.recipe.validation` :data:`VALIDATION_WORLD` and :func:`validation_split`;
 - :mod:`~vpr_nb.recipe.method` :class:`Method` (a loss, an aggregator, a batch sampler) and :data:`BATCHES`;
 - :mod:`~vpr_nb.recipe.start` :func:`build_start` (the epoch-0 candidate), :func:`make_source`,
-  :func:`place_batch_labels`, :class:`PlaceBatches`;
+  :func:`place_batch_labels`, :class:`PlaceBatches`, :class:`TripletBatches`;
 - :mod:`~vpr_nb.recipe.search` :func:`fine_tune`, :func:`lr_search`, :func:`search_methods` (worker processes),
-  :class:`FineTuneResult`, :class:`LRSearch`.
+  :class:`FineTuneResult`, :class:`LRSearch`;
+- :mod:`~vpr_nb.recipe.arms` :func:`run_arms` (on/off experiments, paired by seed), :func:`pooled_recall` and
+  :data:`CITY_TEST_WORLDS` (test sets of 1,700+ queries).
 """
 from __future__ import annotations
 
 from .method import BATCHES, Method
 from .protocol import RECIPE, Recipe
 from .search import FineTuneResult, LRSearch, fine_tune, lr_search, search_methods
-from .start import PlaceBatches, build_start, make_source, place_batch_labels
+from .start import PlaceBatches, TripletBatches, build_start, make_source, place_batch_labels
 from .validation import VALIDATION_WORLD, validation_split
 
-__all__ = ["BATCHES", "RECIPE", "VALIDATION_WORLD", "FineTuneResult", "LRSearch", "Method", "PlaceBatches", "Recipe",
+__all__ = ["BATCHES", "RECIPE", "VALIDATION_WORLD", "FineTuneResult", "LRSearch", "Method", "PlaceBatches", "Recipe", "TripletBatches",
            "build_start", "fine_tune", "lr_search", "make_source", "place_batch_labels", "search_methods",
            "validation_split"]

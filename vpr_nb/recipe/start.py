@@ -1,14 +1,16 @@
 """A method's starting model (the epoch-0 candidate) and its batch source, built the recipe's way."""
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from .. import losses as L
-from .._checks import check_int
+from .._checks import check_int, check_positive
 from ..feature_cache import FrozenFeatureCache, attach
+from ..mining import check_positive_rule
 from ..models import build_model, init_netvlad, init_salad
 from ..pretrain import course_backbone, place_labels
 from ..samplers import random_place_batches
@@ -59,9 +61,7 @@ def make_source(method: Method, train_split, recipe: Recipe = RECIPE):
     if callable(method.batches):
         return method.batches(train_split, recipe, method.loss)
     if method.batches == "triplets":
-        return TripletSource(train_split, method.loss or L.TripletLoss(margin=recipe.margin),
-                             batch_size=recipe.batch_size, num_negatives=recipe.num_negatives,
-                             num_candidates=recipe.num_candidates, max_heading_diff=recipe.max_heading_diff)
+        return TripletBatches("triplets")(train_split, recipe, method.loss)
     labels = place_batch_labels(train_split, recipe)                    # database first, then queries
     images = np.concatenate([train_split.db_images, train_split.q_images])
 
@@ -70,6 +70,31 @@ def make_source(method: Method, train_split, recipe: Recipe = RECIPE):
                                     num_batches=recipe.place_batches_per_epoch, seed=rng)
 
     return PlaceBatchSource(images, batches, loss=method.loss or L.MultiSimilarityLoss())
+
+
+@dataclass(frozen=True)
+class TripletBatches:
+    """A :class:`Method`'s ``batches`` for the recipe's triplet batches with another positive rule or training
+    radius (notebook 03's premise worlds): ``positive`` is ``"best"`` (NetVLAD's rule, the recipe's) or
+    ``"random"`` (one potential positive drawn at random, from the step's seeded stream, so arms stay
+    paired); ``train_pos_radius`` in metres replaces the split's (``None``: the split's, 10 m on the city)."""
+
+    name: str
+    positive: str = "best"
+    train_pos_radius: float | None = None
+
+    def __post_init__(self):
+        check_positive_rule(self.positive)
+        if self.train_pos_radius is not None:
+            check_positive(self.train_pos_radius, "train_pos_radius")
+
+    def __call__(self, train_split, recipe, loss):
+        if self.train_pos_radius is not None:
+            train_split = dataclasses.replace(train_split, train_pos_radius=float(self.train_pos_radius))
+        return TripletSource(train_split, loss or L.TripletLoss(margin=recipe.margin),
+                             batch_size=recipe.batch_size, num_negatives=recipe.num_negatives,
+                             num_candidates=recipe.num_candidates, max_heading_diff=recipe.max_heading_diff,
+                             positive=self.positive)
 
 
 @dataclass(eq=False)

@@ -1,0 +1,10 @@
+"""Each paper's premise experiment: its method and baselines trained where the premise holds ("on") and in a
+twin world where it is switched off ("off"), with the premise record stored beside the arms' numbers.
+
+One module per paper, each with its ``EXPERIMENT`` (every setting, as the results file's config) and
+``run(seeds, workers)`` (the reproduce profile's results, including ``"premise"``,
+:func:`vpr_nb.premise.record.premise_record`):
+
+- :mod:`~vpr_nb.onoff.dwt` DW-T-Loss (notebook 03): random positives over 15 m with sigma = 18 m (on) vs
+  NetVLAD's best positive within 10 m with the paper's sigma = 800 m (off); and the paper's SGD table.
+"""
