@@ -7,4 +7,7 @@ One module per paper, each with its ``EXPERIMENT`` (every setting, as the result
 
 - :mod:`~vpr_nb.onoff.dwt` DW-T-Loss (notebook 03): random positives over 15 m with sigma = 18 m (on) vs
   NetVLAD's best positive within 10 m with the paper's sigma = 800 m (off); and the paper's SGD table.
+- :mod:`~vpr_nb.onoff.clique` CliqueMining (notebook 07): notebook 07's route with a frame every 1 m, where the
+  frozen model's failures are often near misses (on), vs every 2.5 m as 07 trains (off); the paper's comparison
+  (cliques vs sparse only) and the mining-only ablation (cliques vs dense random).
 """

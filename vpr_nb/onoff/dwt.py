@@ -42,7 +42,7 @@ REAL_DATA = {"value": "w 8.78-10.0 (CV 0.031)",
                        "assumption)"}
 EXPERIMENT = {
     "train world": {"preset": "city", "seed": 0, "size": "tiny"},
-    "worlds": {"validation": VALIDATION_WORLD, "test": list(CITY_TEST_WORLDS)},
+    "worlds": {"validation": VALIDATION_WORLD, **{f"test, city seed {w['seed']}": w for w in CITY_TEST_WORLDS}},
     "premise worlds": WORLDS,
     "recipe": RECIPE_ARMS.to_dict(),
     "arms": ["T-Loss", "CE-Loss", "DW-T-Loss", "placebo"],

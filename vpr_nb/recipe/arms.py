@@ -6,7 +6,8 @@ the recipe, every model scored on large test sets pooled over worlds, and paired
 - :func:`pooled_recall`: Recall@N over several test splits, as if their queries were one set (each split's
   own database and positives; queries without a positive left out as in :func:`evaluate_on_split`);
 - :func:`run_arms`: :func:`search_methods` per world, then the pooled test recall of every run and of its
-  start, per seed, plus each arm's chosen lr and whether it is interior to its grid.
+  start, per seed, plus each arm's chosen lr and whether it is interior to its grid (and, with ``extra``, any
+  other per-run numbers, e.g. CliqueMining's near-miss share, :mod:`vpr_nb.onoff.clique`).
 """
 from __future__ import annotations
 
@@ -86,17 +87,33 @@ def _start_recall(model, tests, ns, starts: list) -> dict:
     return rec
 
 
+def _extra_values(extra, models, tests, digits: int, taken) -> dict:
+    """``extra(model, tests)`` of each model, as ``{key: [per model]}``; keys of ``taken`` are refused."""
+    rows = [extra(m, tests) for m in models]
+    if not all(isinstance(r, Mapping) for r in rows) or len({tuple(r) for r in rows}) != 1:
+        raise ValueError("extra must return a dict {key: number} with the same keys for every model")
+    clash = sorted(set(rows[0]) & set(taken))
+    if clash:
+        raise ValueError(f"extra's keys {clash} are run_arms' own; name them otherwise")
+    return {k: [round(float(r[k]), digits) for r in rows] for k in rows[0]}
+
+
 def run_arms(worlds: Mapping[str, Mapping], val_split, tests: Sequence, seeds: Sequence[int],
              recipe: Recipe = RECIPE, *, workers: int = 1, lr: float | None = None,
-             digits: int = 4) -> dict:
+             digits: int = 4, extra=None) -> dict:
     """Train every arm of every world and score it: ``worlds`` = ``{world: {"train": split, "methods": [Method
     or (Method, Recipe)]}}``. Each world's methods go through :func:`search_methods` (lr searched per arm unless
     ``lr`` is given) on its own training split, selected on ``val_split``; every selected model and its start
     are scored by :func:`pooled_recall` on ``tests``.
 
     Returns ``{world: {arm: {"R@1": [per seed], "R@5": [...], "start R@1": [...], "lr": chosen, "lr interior":
-    bool, "grid": [lrs tried], "best epoch": [...]}}}``; seeds in the order given (pair arms by position)."""
+    bool, "grid": [lrs tried], "best epoch": [...]}}}``; seeds in the order given (pair arms by position).
+
+    ``extra``: a function ``(model, tests) -> {key: number}`` called on every selected model; each key is added
+    to its arm as a per-seed list (rounded to ``digits``), beside the keys above (which it may not reuse)."""
     recipe = _check_recipe(recipe)
+    if extra is not None and not callable(extra):
+        raise ValueError(f"extra must be a function (model, tests) -> {{key: number}} or None, got {extra!r}")
     seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
     if not isinstance(worlds, Mapping) or not worlds:
         raise ValueError("worlds must be a non-empty dict {world: {'train': split, 'methods': [...]}}")
@@ -114,6 +131,9 @@ def run_arms(worlds: Mapping[str, Mapping], val_split, tests: Sequence, seeds: S
                           "lr": s.lr, "lr interior": bool(s.interior), "grid": [float(f"{v:g}") for v in s.grid],
                           "best epoch": [int(s.runs[seed].best_epoch) for seed in seeds],
                           "test queries": int(model_r[0]["queries"])}
+            if extra is not None:
+                arms[name].update(_extra_values(extra, [s.runs[seed].model for seed in seeds], tests, digits,
+                                                arms[name]))
         out[world] = arms
     return out
 

@@ -1,0 +1,134 @@
+"""The premise record (vpr_nb.premise.record), the on/off arms' pieces (vpr_nb.recipe.arms, TripletBatches),
+and the stored premise notebooks: every verdict they print and state follows the stored numbers."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import nbformat
+import numpy as np
+import pytest
+
+from vpr_nb.premise.record import (VERDICTS, gap, gap_text, paired_differences, premise_record, record_problems,
+                                   verdict, verdict_lines)
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "notebooks" / "results"
+# premise results file -> the stored notebook that shows it
+PREMISE_FILES = {"03_premise.json": "03_distance_ranking_weighted_loss.ipynb",
+                 "05_premise.json": "05_salad.ipynb",
+                 "07_premise.json": "07_clique_mining.ipynb"}
+
+
+def _record(diffs_on=(0.03, 0.04, 0.02, 0.05, 0.03), diffs_off=(0.01, -0.01, 0.0, 0.02, -0.02), queries=1749):
+    return premise_record("cv of w", "not found",
+                          {"on": {"value": 0.9, "test queries": queries}, "off": {"value": 0.03, "test queries": queries}},
+                          {"A − B": {"on": list(diffs_on), "off": list(diffs_off)}})
+
+
+def test_gap_is_mean_and_standard_error_of_paired_differences():
+    d = [0.03, 0.04, 0.02, 0.05, 0.03]
+    m, se = gap(d)
+    assert m == pytest.approx(np.mean(d)) and se == pytest.approx(np.std(d, ddof=1) / np.sqrt(5))
+    assert paired_differences([0.9, 0.8], [0.85, 0.82]) == [0.05, -0.02]
+
+
+@pytest.mark.parametrize("diffs, word", [([0.03, 0.04, 0.02, 0.05, 0.03], "helps"),
+                                         ([-0.03, -0.04, -0.02, -0.05, -0.03], "hurts"),
+                                         ([0.01, -0.01, 0.0, 0.02, -0.02], "no measurable effect"),
+                                         ([0.05], "no measurable effect")])
+def test_verdict_follows_two_standard_errors(diffs, word):
+    assert verdict(diffs) == word
+    assert gap_text(diffs).endswith(word)
+
+
+def test_verdict_at_the_boundary():
+    # mean 0.02, SE 0.01 exactly: not beyond 2 SE
+    d = [0.02 + x for x in (-0.01 * np.sqrt(5) / np.sqrt(2), 0.01 * np.sqrt(5) / np.sqrt(2))]
+    m, se = gap(d)
+    assert verdict([m + 3 * se, m - se]) in VERDICTS
+
+
+def test_record_is_checked():
+    rec = _record()
+    assert record_problems(rec) == []
+    assert verdict_lines(rec) == ["A − B, premise on: +0.034 ± 0.005 (5 seeds): helps",
+                                  "A − B, premise off: +0.000 ± 0.007 (5 seeds): no measurable effect"]
+    assert record_problems(_record(diffs_on=(0.1, 0.2))) == ["A − B, premise on: 2 paired seeds, fewer than 5"]
+    assert "test queries" in record_problems(_record(queries=318))[0]
+    with pytest.raises(ValueError, match="worlds must have exactly"):
+        premise_record("q", "not found", {"on": {"value": 1, "test queries": 5}}, {"A − B": {"on": [1], "off": [1]}})
+    with pytest.raises(ValueError, match="NaN"):
+        _record(diffs_on=(0.1, float("nan")))
+    with pytest.raises(ValueError, match="real_data"):
+        premise_record("q", "unknown", {"on": {"value": 1, "test queries": 5}, "off": {"value": 1, "test queries": 5}},
+                       {"A − B": {"on": [1], "off": [1]}})
+
+
+def test_pooled_recall_weights_each_split_by_its_counted_queries():
+    from vpr_nb.recipe.arms import counted_queries, pooled_recall
+    from vpr_nb.synthetic import make_dataset
+    ds = make_dataset("city", seed=0, splits=("val", "test"))
+    from vpr_nb.evaluation import evaluate_on_split, raw_pixel_descriptors
+    pix = raw_pixel_descriptors
+    parts = [(evaluate_on_split(pix(s.db_images), pix(s.q_images), s, (1,))[1], counted_queries(s))
+             for s in (ds.val, ds.test)]
+    pooled = pooled_recall(None, [ds.val, ds.test], (1,), descriptors=pix)
+    assert pooled["queries"] == sum(n for _, n in parts)
+    assert pooled[1] == pytest.approx(sum(r * n for r, n in parts) / sum(n for _, n in parts))
+    with pytest.raises(ValueError, match="at least one test split"):
+        pooled_recall(None, [], (1,), descriptors=pix)
+
+
+def test_triplet_batches_draw_random_positives_within_their_radius():
+    import dataclasses
+
+    from vpr_nb.recipe import RECIPE, TripletBatches
+    from vpr_nb.synthetic import make_dataset
+    tr = make_dataset("city", seed=0, splits=("train",)).train
+    src = TripletBatches("t", "random", 15.0)(tr, RECIPE, None)
+    assert src.positive == "random" and src.split.train_pos_radius == 15.0 and tr.train_pos_radius == 10.0
+    assert dataclasses.replace(tr).train_pos_radius == 10.0
+    with pytest.raises(ValueError):
+        TripletBatches("t", "nearest")
+    with pytest.raises(ValueError):
+        TripletBatches("t", "random", -1.0)
+
+
+def _outputs(nb) -> str:
+    out = []
+    for cell in nb.cells:
+        for o in cell.get("outputs", []):
+            out.append(o.get("text", "") if o.get("output_type") == "stream" else o.get("data", {}).get("text/plain", ""))
+    return "\n".join(out)
+
+
+_STATED = re.compile(r"(?P<name>[^\n*:;]+? − [^\n*:;,]+?), premise (?P<world>on|off)\W+(?P<rest>[^\n]*)")
+
+
+@pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
+def test_stored_premise_records_and_their_verdicts(results_file):
+    path = RESULTS / results_file
+    if not path.exists():
+        pytest.skip(f"{results_file} is not committed yet")
+    record = json.loads(path.read_text(encoding="utf-8"))["results"]["premise"]
+    assert record_problems(record) == []
+    nb = nbformat.read(ROOT / "notebooks" / PREMISE_FILES[results_file], as_version=4)
+    outputs = _outputs(nb)
+    lines = verdict_lines(record)
+    missing = [line for line in lines if line not in outputs]
+    assert not missing, f"the stored notebook does not print these verdicts of {results_file}: {missing}"
+    words = {(name, w): verdict(per[w]) for name, per in record["comparisons"].items() for w in ("on", "off")}
+    text = "\n".join(c.source for c in nb.cells if c.cell_type == "markdown")
+    stated = 0
+    for m in _STATED.finditer(text):
+        key = (m["name"].strip(" *_"), m["world"])
+        if key not in words:
+            continue
+        said = [v for v in VERDICTS if v in m["rest"]]
+        assert said, f"the text states {key} without a verdict word: {m.group(0)!r}"
+        assert said[0] == words[key], (f"the text says {key}: {said[0]!r}; the stored numbers give "
+                                       f"{words[key]!r} ({gap_text(record['comparisons'][key[0]][key[1]])})")
+        stated += 1
+    assert stated >= 1, f"the text of {PREMISE_FILES[results_file]} states no premise verdict"
