@@ -13,7 +13,9 @@ the *method* (a loss, an aggregator, a batch sampler), so everything else is fix
   for each backbone, which notebook 04 asks.
 - **Heads initialised from data**: NetVLAD by k-means (:func:`vpr_nb.models.init_netvlad`, 20 features per
   training-database image, 50 iterations, the training seed); SALAD with standardised head inputs
-  (:func:`vpr_nb.models.init_salad`; the published initialisation starts collapsed here, notebook 05).
+  (:func:`vpr_nb.models.init_salad`; the published initialisation starts collapsed here, notebook 05); with
+  ``salad_kmeans_scores`` (off by default) SALAD's score head also starts from NetVLAD's k-means logits
+  (:func:`vpr_nb.models.init_salad_scores_from_kmeans`, :mod:`vpr_nb.onoff.salad`).
 - **Batches**: triplets (:class:`vpr_nb.training.TripletSource`, notebook 04: 16 queries per step, the 5 hardest
   of 300 negatives, margin 0.1, positives facing within 45°) or P × K place batches
   (:class:`vpr_nb.training.PlaceBatchSource`, notebook 05's MS recipe: 32 places × 4 images, 30 batches an

@@ -76,14 +76,24 @@ def _same_weights(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+def _settings(model) -> tuple:
+    """What a model computes besides its weights: each module's type and its plain settings (e.g. SALAD's
+    ``assignment``, "sinkhorn" or "softmax")."""
+    return tuple((name, type(m).__name__, tuple(sorted((k, v) for k, v in vars(m).items() if not k.startswith("_")
+                                                       and isinstance(v, (str, int, float, bool)))))
+                 for name, m in model.named_modules())
+
+
 def _start_recall(model, tests, ns, starts: list) -> dict:
-    """:func:`pooled_recall` of a start, scored once: arms of one seed share their start weights."""
+    """:func:`pooled_recall` of a start, scored once: arms of one seed share their start (same weights and the
+    same settings, :func:`_settings`)."""
     state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    for weights, rec in starts:
-        if _same_weights(weights, state):
+    settings = _settings(model)
+    for weights, kind, rec in starts:
+        if kind == settings and _same_weights(weights, state):
             return rec
     rec = pooled_recall(model, tests, ns)
-    starts.append((state, rec))
+    starts.append((state, settings, rec))
     return rec
 
 

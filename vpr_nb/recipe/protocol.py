@@ -1,7 +1,7 @@
 """The course's fine-tuning protocol as data: :class:`Recipe`, every setting a fine-tuning run does not vary."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 from .. import losses as L
 from .._checks import check_int, check_positive
@@ -40,6 +40,8 @@ class Recipe:
     salad_hidden_dim: int = 64
     salad_dropout: float = 0.3
     salad_standardise: bool = True
+    salad_kmeans_scores: bool = False            # on: SALAD's score head from NetVLAD's k-means logits, so that
+                                                 # assignments compare from one start (vpr_nb.onoff.salad)
     # optimiser (notebook 04)
     optimizer: str = "adam"
     lr: float = 1e-3                             # a run without search (e.g. a CI smoke test); also in lr_grid
@@ -85,7 +87,7 @@ class Recipe:
             raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.cache_dtype not in CACHE_DTYPES:
             raise ValueError(f"cache_dtype must be one of {sorted(CACHE_DTYPES)}, got {self.cache_dtype!r}")
-        for name in ("salad_standardise", "initial_candidate", "frozen_cache"):
+        for name in ("salad_standardise", "salad_kmeans_scores", "initial_candidate", "frozen_cache"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         grid = tuple(float(check_positive(v, "lr_grid entry")) for v in self.lr_grid)
@@ -103,8 +105,11 @@ class Recipe:
         object.__setattr__(self, "ns", ns)
 
     def to_dict(self) -> dict:
-        """The recipe as plain data (for a notebook's ``EXPERIMENT`` config)."""
-        return asdict(self)
+        """The recipe as plain data (for a notebook's ``EXPERIMENT`` config). Settings added after results were
+        committed (:data:`OPTIONAL_SETTINGS`) appear only when set away from their default, so a recipe without
+        them gives the dict it gave before and committed results stay keyed on the same config."""
+        return {k: v for k, v in asdict(self).items()
+                if not (k in OPTIONAL_SETTINGS and v == _DEFAULTS[k])}
 
     def aggregator_kwargs(self, aggregator: str) -> dict:
         """The recipe's size settings for ``aggregator`` (``build_model`` keyword arguments)."""
@@ -123,6 +128,10 @@ class Recipe:
                            initial_candidate=self.initial_candidate, patience=self.patience, device="cpu")
 
 
+# Settings that are off by default and leave :meth:`Recipe.to_dict` alone while they are off (as
+# vpr_nb.synthetic's OPTIONAL_CONTENT leaves a world's fingerprint alone).
+OPTIONAL_SETTINGS = ("salad_kmeans_scores",)
+_DEFAULTS = {f.name: f.default for f in fields(Recipe)}
 RECIPE = Recipe()
 
 

@@ -11,7 +11,7 @@ from .. import losses as L
 from .._checks import check_int, check_positive
 from ..feature_cache import FrozenFeatureCache, attach
 from ..mining import check_positive_rule
-from ..models import build_model, init_netvlad, init_salad
+from ..models import build_model, init_netvlad, init_salad, init_salad_scores_from_kmeans
 from ..pretrain import course_backbone, place_labels
 from ..samplers import random_place_batches
 from ..seeding import seed_everything
@@ -24,7 +24,9 @@ def build_start(method: Method, train_split, recipe: Recipe = RECIPE, seed: int 
                 cache: FrozenFeatureCache | None = None):
     """The starting model of ``method`` (the epoch-0 candidate): the course backbone read before or after its
     final ReLU (``recipe.after_relu``), the recipe's trainable blocks and the aggregator, initialised from the
-    training database (NetVLAD: k-means; SALAD: standardised head inputs). Seeded by ``seed``; with
+    training database (NetVLAD: k-means; SALAD: standardised head inputs, and with
+    ``recipe.salad_kmeans_scores`` its score head set to NetVLAD's k-means logits, the same k-means as NetVLAD's
+    start of this seed: :func:`vpr_nb.models.init_salad_scores_from_kmeans`). Seeded by ``seed``; with
     ``cache`` attached to the backbone (the caller detaches it)."""
     method, recipe = _check_method(method), _check_recipe(recipe)
     seed = check_int(seed, "seed", minimum=0)
@@ -38,8 +40,12 @@ def build_start(method: Method, train_split, recipe: Recipe = RECIPE, seed: int 
     if method.aggregator == "netvlad":
         init_netvlad(model, train_split.db_images, per_image=recipe.netvlad_per_image, niter=recipe.netvlad_niter,
                      seed=seed)
-    elif method.aggregator == "salad" and recipe.salad_standardise:
-        init_salad(model, train_split.db_images)
+    elif method.aggregator == "salad":
+        if recipe.salad_standardise:
+            init_salad(model, train_split.db_images)
+        if recipe.salad_kmeans_scores:
+            init_salad_scores_from_kmeans(model, train_split.db_images, per_image=recipe.netvlad_per_image,
+                                          niter=recipe.netvlad_niter, seed=seed)
     return model
 
 
