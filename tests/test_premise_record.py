@@ -104,7 +104,16 @@ def _outputs(nb) -> str:
     return "\n".join(out)
 
 
-_STATED = re.compile(r"(?P<name>[^\n*:;]+? − [^\n*:;,]+?), premise (?P<world>on|off)\W+(?P<rest>[^\n]*)")
+def _stated_verdicts(text: str, names) -> list[tuple[str, str, str | None]]:
+    """``(comparison, world, the first verdict word after it in its line or None)`` for every place the text
+    names a comparison and a world as ``"<comparison>, premise on"`` (markup such as ``*`` in between is allowed)."""
+    found = []
+    for name in names:
+        for m in re.finditer(re.escape(name) + r"[*_]*,\s*premise\s+(on|off)\b", text):
+            rest = text[m.end():].split("\n", 1)[0]
+            hits = sorted((rest.find(v), v) for v in VERDICTS if v in rest)
+            found.append((name, m.group(1), hits[0][1] if hits else None))
+    return found
 
 
 @pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
@@ -121,14 +130,15 @@ def test_stored_premise_records_and_their_verdicts(results_file):
     assert not missing, f"the stored notebook does not print these verdicts of {results_file}: {missing}"
     words = {(name, w): verdict(per[w]) for name, per in record["comparisons"].items() for w in ("on", "off")}
     text = "\n".join(c.source for c in nb.cells if c.cell_type == "markdown")
-    stated = 0
-    for m in _STATED.finditer(text):
-        key = (m["name"].strip(" *_"), m["world"])
-        if key not in words:
-            continue
-        said = [v for v in VERDICTS if v in m["rest"]]
-        assert said, f"the text states {key} without a verdict word: {m.group(0)!r}"
-        assert said[0] == words[key], (f"the text says {key}: {said[0]!r}; the stored numbers give "
-                                       f"{words[key]!r} ({gap_text(record['comparisons'][key[0]][key[1]])})")
-        stated += 1
-    assert stated >= 1, f"the text of {PREMISE_FILES[results_file]} states no premise verdict"
+    stated = _stated_verdicts(text, record["comparisons"])
+    for name, world, said in stated:
+        assert said, f"the text states {name}, premise {world} without a verdict word in its line"
+        assert said == words[(name, world)], (
+            f"the text says {name}, premise {world}: {said!r}; the stored numbers give {words[(name, world)]!r} "
+            f"({gap_text(record['comparisons'][name][world])})")
+    assert stated, f"the text of {PREMISE_FILES[results_file]} states no premise verdict"
+
+
+def test_stated_verdicts_are_read_in_text_order():
+    text = "* *A − B, premise on*: no measurable effect here, where it helps elsewhere\n* A − B, premise off: hurts"
+    assert _stated_verdicts(text, ["A − B"]) == [("A − B", "on", "no measurable effect"), ("A − B", "off", "hurts")]

@@ -91,6 +91,14 @@ def test_the_estimate_comes_from_the_committed_run_and_the_last_timed_run(tmp_pa
     assert line.startswith("[plan] 03_loss.ipynb, reproduce profile: about 62–66 min on 2 cores (its committed")
 
 
+def test_the_estimate_adds_the_premise_experiment(tmp_path):
+    _results_file(tmp_path / "03_loss.json", {"rows": {}, "seconds": 3694.9}, commit="a464538")
+    _results_file(tmp_path / "03_premise.json", {"premise": {}, "seconds": 1200.0}, commit="b123456")
+    est = one.estimate("03_loss", "reproduce", tmp_path)
+    assert (est.low, est.high) == (3694.9 + 1200.0, one.MEASURED_MINUTES["03"] * 60 + 1200.0)
+    assert "its premise experiment 20 min (2026-12-05, b123456)" in est.source
+
+
 def test_the_estimate_without_committed_results_or_without_any_timing(tmp_path):
     est = one.estimate("02_base", "reproduce", tmp_path)                        # 02 keeps no committed results
     assert est.low == est.high == one.MEASURED_MINUTES["02"] * 60 and est.text() == "about 6.6 min"

@@ -97,24 +97,37 @@ def read_results(path) -> dict | None:
     return doc if isinstance(doc, dict) else None
 
 
+def _run_seconds(path: Path):
+    """``(seconds, "date, commit")`` a committed results file records for its experiment, or None."""
+    doc = read_results(path)
+    seconds = (doc or {}).get("results", {}).get(TIME_KEY) if isinstance((doc or {}).get("results"), dict) else None
+    if not (isinstance(seconds, (int, float)) and not isinstance(seconds, bool) and math.isfinite(seconds)
+            and seconds > 0):
+        return None
+    stamp = doc.get("stamp") if isinstance(doc.get("stamp"), dict) else {}
+    return float(seconds), ", ".join(str(stamp[k]) for k in ("date", "git commit") if stamp.get(k))
+
+
 def estimate(stem: str, profile: str, committed_dir) -> Estimate:
     """The expected run time of notebook ``stem`` in ``profile``: for ``reproduce``, the run time its committed
     results record (``results.seconds``, the time of its experiment) and its time in the last timed
-    ``make reproduce`` (:data:`MEASURED_MINUTES`), as a range; for ``ci``, about a minute."""
+    ``make reproduce`` (:data:`MEASURED_MINUTES`), as a range, each plus its premise experiment's recorded time
+    (``NN_premise.json``, :mod:`vpr_nb.onoff`) where it has one; for ``ci``, about a minute."""
     if profile != "reproduce":
         return Estimate(CI_MINUTES * 60, CI_MINUTES * 60, "the ci budget")
     times, parts = [], []
-    doc = read_results(Path(committed_dir) / f"{stem}.json")
-    seconds = (doc or {}).get("results", {}).get(TIME_KEY) if isinstance((doc or {}).get("results"), dict) else None
-    if isinstance(seconds, (int, float)) and not isinstance(seconds, bool) and math.isfinite(seconds) and seconds > 0:
-        stamp = doc.get("stamp") if isinstance(doc.get("stamp"), dict) else {}
-        when = ", ".join(str(stamp[k]) for k in ("date", "git commit") if stamp.get(k))
-        times.append(float(seconds))
-        parts.append(f"its committed results took {_minutes(seconds)}" + (f" ({when})" if when else ""))
+    premise = _run_seconds(Path(committed_dir) / f"{stem[:2]}_premise.json")
+    extra = premise[0] if premise else 0.0
+    own = _run_seconds(Path(committed_dir) / f"{stem}.json")
+    if own:
+        times.append(own[0] + extra)
+        parts.append(f"its committed results took {_minutes(own[0])}" + (f" ({own[1]})" if own[1] else ""))
     measured = MEASURED_MINUTES.get(stem[:2])
     if measured is not None:
-        times.append(measured * 60)
+        times.append(measured * 60 + extra)
         parts.append(f"the last timed make reproduce ({TIMED_COMMIT}): {_minutes(measured * 60)}")
+    if premise and times:
+        parts.append(f"its premise experiment {_minutes(premise[0])}" + (f" ({premise[1]})" if premise[1] else ""))
     if not times:
         return Estimate(None, None, "no run of it was timed")
     return Estimate(min(times), max(times), "; ".join(parts))
