@@ -215,13 +215,11 @@ print("CE-Loss on descriptors scaled by 1e4 (naive exp would overflow):", f"{ce_
 #
 # Every fine-tune follows the **course recipe** (`vpr_nb.recipe.RECIPE`, notebooks 03–07): the course
 # backbone's last block trains (the analogue of conv5), NetVLAD starts from k-means, and Adam trains until
-# validation R@1 stalls for 4 epochs, the start counting as "epoch 0". Each loss's learning rate is chosen
-# on a separate validation city from a small grid that includes the paper's $10^{-4}$. For one training
-# seed every row starts from the **same initial weights** and mining randomness; only the loss (with its
-# learning rate) or the pooling changes. Batch and validation details: `docs/notes/03_distance_ranking_weighted_loss.md`.
+# validation R@1 stalls for 4 epochs. Each loss's learning rate is chosen on a separate validation city. For
+# one seed every row starts from the **same initial weights**; only the loss (with its learning rate) or the
+# pooling changes. Details: `docs/notes/03_distance_ranking_weighted_loss.md`.
 #
-# The course backbone is a `SmallCNN` pretrained with the Multi-Similarity loss on other worlds. It
-# outputs an 8×12 map of 128-d local features; NetVLAD-16 makes a $16 \cdot 128 = 2048$-d descriptor.
+# The course backbone, a `SmallCNN` pretrained on other worlds, outputs an 8×12 map of 128-d local features; NetVLAD-16 makes a $16 \cdot 128 = 2048$-d descriptor.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -695,7 +693,7 @@ plt.show()
 #
 # * *DW-T-Loss − T-Loss, premise on*: hurts.
 # * *DW-T-Loss − placebo, premise on*: no measurable effect.
-# * *DW-T-Loss − T-Loss, premise off*: no measurable effect, like every comparison in that world.
+# * *DW-T-Loss − T-Loss, premise off*: no measurable effect, as every comparison there.
 #
 # The premise holds, yet the weight does not help: a finding, not a reproduction. Under SGD at one
 # learning rate DW-T-Loss beats T-Loss, and so does its placebo: the gain is the larger step.
@@ -826,6 +824,8 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 #    Is it then within 2 SE of T-Loss under SGD?
 #    <details><summary>Hint</summary><code>lr=PAPER_LR / RATIOS["netvlad"]["W-T-Loss"]</code> with the
 #    <code>SGD</code> recipe.</details>
+# 4. **σ that ranks.** In a new cell, set `SIGMA = 25.0`; rerun the gradient cell. Does the cosine move?
+#    <details><summary>Hint</summary>Watch the cosine column.</details>
 #
 # ## Takeaways
 #

@@ -46,7 +46,7 @@ from vpr_nb.evaluation import (images_to_tensor, model_recall_row,
                                raw_pixel_descriptors, recall_row)
 from vpr_nb.models import build_model, init_netvlad
 from vpr_nb.onoff import salad as onoff_salad
-from vpr_nb.premise.record import gap, verdict_lines
+from vpr_nb.premise.record import gap as paired_gap, verdict_lines
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.probes import local_feature_probe
 from vpr_nb.recipe import RECIPE, VALIDATION_WORLD, Method, build_start, search_methods, validation_split
@@ -696,7 +696,7 @@ for k, (world, colour) in enumerate((("on", "tab:green"), ("off", "tab:grey"))):
     shares = pres["dustbin"][world]["trained"]["share by label"]
     axes[0].bar(xs + (k - 0.5) * 0.38, [shares.get(n, np.nan) for n in LABELS], 0.38, color=colour,
                 label=f"premise {world}")
-    m, se = gap(PREM["comparisons"]["Sinkhorn − softmax"][world])
+    m, se = paired_gap(PREM["comparisons"]["Sinkhorn − softmax"][world])
     axes[1].bar(k, m, 0.6, yerr=2 * se, capsize=3, color=colour)
 axes[0].axhline(pres["dustbin"]["on"]["by construction (n - m) / n"], color="k", ls="--", lw=1, label="(n − m)/n")
 axes[0].set_xticks(xs, LABELS, fontsize=8)

@@ -48,7 +48,7 @@ from vpr_nb.losses import MultiSimilarityLoss
 from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.onoff import clique as onoff_clique
-from vpr_nb.premise.record import gap, verdict_lines
+from vpr_nb.premise.record import gap as paired_gap, verdict_lines
 from vpr_nb.probes import near_duplicate_probe
 from vpr_nb.recipe import RECIPE, Method, PlaceBatches, search_methods
 from vpr_nb.report import record
@@ -598,7 +598,7 @@ for k, (world, colour) in enumerate((("on", "tab:green"), ("off", "tab:grey"))):
                                                            for n in ARMS]
     axes[0].bar(np.arange(4) + (k - 0.5) * 0.38, shares, 0.38, color=colour, label=f"premise {world}")
     comps = list(PREM["comparisons"])
-    gaps = [gap(PREM["comparisons"][c][world]) for c in comps]
+    gaps = [paired_gap(PREM["comparisons"][c][world]) for c in comps]
     axes[1].bar(np.arange(len(comps)) + (k - 0.5) * 0.38, [g[0] for g in gaps], 0.38,
                 yerr=[2 * g[1] for g in gaps], capsize=3, color=colour, label=f"premise {world}")
 axes[0].set_xticks(range(4), ["frozen"] + [n.replace(" + ", "\n+ ") for n in ARMS], fontsize=7)
