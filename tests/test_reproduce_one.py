@@ -97,6 +97,10 @@ def test_the_estimate_adds_the_premise_experiment(tmp_path):
     est = one.estimate("03_loss", "reproduce", tmp_path)
     assert (est.low, est.high) == (3694.9 + 1200.0, one.MEASURED_MINUTES["03"] * 60 + 1200.0)
     assert "its premise experiment 20 min (2026-12-05, b123456)" in est.source
+    _results_file(tmp_path / "03_probes.json", {"arms": {}, "seconds": 600.0}, commit="c123456")
+    est = one.estimate("03_loss", "reproduce", tmp_path)
+    assert (est.low, est.high) == (3694.9 + 1800.0, one.MEASURED_MINUTES["03"] * 60 + 1800.0)
+    assert "its probes 10 min (2026-12-05, c123456)" in est.source
 
 
 def test_the_estimate_without_committed_results_or_without_any_timing(tmp_path):

@@ -112,12 +112,15 @@ def estimate(stem: str, profile: str, committed_dir) -> Estimate:
     """The expected run time of notebook ``stem`` in ``profile``: for ``reproduce``, the run time its committed
     results record (``results.seconds``, the time of its experiment) and its time in the last timed
     ``make reproduce`` (:data:`MEASURED_MINUTES`), as a range, each plus its premise experiment's recorded time
-    (``NN_premise.json``, :mod:`vpr_nb.onoff`) where it has one; for ``ci``, about a minute."""
+    (``NN_premise.json``, :mod:`vpr_nb.onoff`) and its probes (``NN_probes.json``) where it has them; for ``ci``,
+    about a minute."""
     if profile != "reproduce":
         return Estimate(CI_MINUTES * 60, CI_MINUTES * 60, "the ci budget")
     times, parts = [], []
-    premise = _run_seconds(Path(committed_dir) / f"{stem[:2]}_premise.json")
-    extra = premise[0] if premise else 0.0
+    extras = {what: _run_seconds(Path(committed_dir) / f"{stem[:2]}_{kind}.json")
+              for what, kind in (("premise experiment", "premise"), ("probes", "probes"))}
+    extras = {what: t for what, t in extras.items() if t}
+    extra = sum(t[0] for t in extras.values())
     own = _run_seconds(Path(committed_dir) / f"{stem}.json")
     if own:
         times.append(own[0] + extra)
@@ -126,8 +129,8 @@ def estimate(stem: str, profile: str, committed_dir) -> Estimate:
     if measured is not None:
         times.append(measured * 60 + extra)
         parts.append(f"the last timed make reproduce ({TIMED_COMMIT}): {_minutes(measured * 60)}")
-    if premise and times:
-        parts.append(f"its premise experiment {_minutes(premise[0])}" + (f" ({premise[1]})" if premise[1] else ""))
+    if times:
+        parts += [f"its {what} {_minutes(t[0])}" + (f" ({t[1]})" if t[1] else "") for what, t in extras.items()]
     if not times:
         return Estimate(None, None, "no run of it was timed")
     return Estimate(min(times), max(times), "; ".join(parts))
