@@ -23,11 +23,9 @@
 # (Izquierdo & Civera, ECCV 2024) changes only *which images form a training batch*: look-alike places of one
 # city, just beyond the same-place threshold. You will
 #
-# * build group sampling by similarity and the geographic clique graph, and check `vpr_nb.samplers.clique_batches`;
-# * measure how close and alike a batch's places are, against random-place batches (the GSV-Cities baseline);
-# * probe how alike a clique batch's negatives are;
-# * train SALAD on both kinds of batches (5 paired seeds) and compare Recall@1 and the **mis-ordering
-#   probability**, behind a control.
+# * build Eq. (1) and the clique graph, and check `vpr_nb.samplers.clique_batches`;
+# * compare clique and random batches: distances, look-alikes, Recall@1 and the **mis-ordering probability**;
+# * switch the premise (near misses) on and off, and probe why cliques lose.
 
 # %% tags=["parameters", "grade-deps:ex-07-close-pairs"]
 PROFILE = "ci"  # "ci": 1 seed, one epoch per arm (what CI checks); "reproduce": 5 paired seeds, until validation plateaus
@@ -35,6 +33,7 @@ PROFILE = "ci"  # "ci": 1 seed, one epoch per arm (what CI checks); "reproduce":
 # %% tags=["grade-deps:ex-07-close-pairs"]
 import vpr_nb.notebook  # first, before numpy and torch start: it pins the CPU kernels (the stored numbers)
 import dataclasses
+import textwrap
 import time
 
 import matplotlib.pyplot as plt
@@ -48,7 +47,8 @@ from vpr_nb.losses import MultiSimilarityLoss
 from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.onoff import clique as onoff_clique
-from vpr_nb.premise.record import gap as paired_gap, verdict_lines
+from vpr_nb.onoff import clique_probes
+from vpr_nb.premise.record import gap as paired_gap, gap_text, verdict_lines
 from vpr_nb.probes import near_duplicate_probe
 from vpr_nb.recipe import RECIPE, Method, PlaceBatches, search_methods
 from vpr_nb.report import record
@@ -90,8 +90,7 @@ print(f"profile {PROFILE}: the tuned route {ROUTE} and the city (seed 0)")
 #
 # $$\mathcal L_{\text{half}} = \frac1{PK}\sum_i \Big[\frac1\alpha \log\big(1 + \sum_{p \in \mathcal P_i} e^{-\alpha (S_{ip} - \lambda)}\big) + \frac1\beta \log\big(1 + \sum_{n \in \mathcal N_i} e^{\beta (S_{in} - \lambda)}\big)\Big], \qquad \mathcal L = \mathcal L_{\text{random}} + \mathcal L_{\text{clique}}. \tag{3}$$
 #
-# The **baseline** makes both halves random. Both share one place definition, and it must match the
-# evaluation: a place fits inside the positive radius and, in the city, faces one way.
+# The **baseline** makes both halves random, with the same place definition.
 #
 # **What should change.** Clique negatives lie just beyond $\tau$, so notebook 06's
 # $p(d_1, d_2) = P(D(d_2) < D(d_1))$ should drop at small distances. On the tuned route, positives lie 0 and
@@ -243,9 +242,9 @@ plt.show()
 # %% [markdown]
 # ## What the batches contain
 #
-# Per batch (`batch_statistics`): the distance and cosine similarity between places. Per image: the distance to
-# the nearest image of another place (its hardest geographic negative), and its cosine to its positives and to
-# its most alike negative. Medians over 20 batches.
+# Per batch (`batch_statistics`): distances and cosines between places. Per image: the nearest other-place
+# image (its hardest geographic negative), and cosines to its positives and most alike negative. Medians over
+# 20 batches.
 
 # %%
 def nearest_other_place(batches, utm):
@@ -281,9 +280,9 @@ for p in data:
 
 # %% [markdown]
 # **Reading the table.** On the route, clique places are about four times closer than random ones (110.0 m
-# against 414.7 m). The hardest negative lies 5 m away, like the evaluation's, and looks as alike as the
-# positives (0.864 against 0.856). The tiny city shows the opposite: clique places are no closer (122.6 m
-# against 118.5 m) and their nearest negative is farther (37.5 m against 25.0 m).
+# against 414.7 m). The hardest negative lies 5 m away and looks as alike as the positives (0.864 against
+# 0.856). In the tiny city, clique places are no closer (122.6 m against 118.5 m) and their nearest negative is
+# farther (37.5 m against 25.0 m).
 
 # %% [markdown]
 # ## The graph, its cliques and a batch on the map
@@ -329,9 +328,8 @@ plt.show()
 # %% [markdown]
 # ## Before training: how alike are a clique batch's negatives?
 #
-# A clique negative is a frame a few metres away in the **same season**; the positive is the same spot in
-# **another season**. How often is the frame $k$ frames ahead closer than the frame's own positive (Eq. 2 of
-# `vpr_nb.probes`)? Then the loss must push apart views that differ less than positives do.
+# A clique negative is a nearby frame in the **same season**; the positive is the same spot in **another
+# season**. How often is the frame $k$ ahead closer than the positive (Eq. 2 of `vpr_nb.probes`)?
 
 # %%
 def near_duplicates_by_hand(db, q, utm, frames):
@@ -362,16 +360,15 @@ for name, shares in NEAR_DUP.items():
 # ## Experiment: the paper's comparison and the mining-only ablation
 #
 # The paper reports **+14 R@1 points on Nordland** when half of each GSV-Cities batch (sparse places) becomes
-# MSLS *cliques* (dense places). That changes the **data and the mining** at once. Here sparse places come from
-# the city, dense ones from the route, and we test on the route. Each step holds 8 + 8 places × 4 images:
+# MSLS *cliques* (dense places): **data and mining** change at once. Here sparse places come from the city,
+# dense ones from the route. Each step holds 8 + 8 places × 4 images:
 #
 # * **sparse only**: 16 random city places (the baseline);
 # * **sparse + dense random**: 8 city + 8 random route places;
 # * **sparse + dense cliques**: 8 city + 8 route clique places (the paper's method).
 #
 # *Cliques* vs *sparse only* is **the paper's comparison**; *cliques* vs *dense random* is **the mining-only
-# ablation**. The model is the course backbone (last block trainable) + SALAD, up to 2,000 steps, best
-# validation epoch kept (settings: `docs/notes/07_clique_mining.md`).
+# ablation**. The model: the course backbone + SALAD, up to 2,000 steps (`docs/notes/07_clique_mining.md`).
 
 # %%
 HALF, NB = 8, 50                              # places per half, batches per epoch
@@ -488,9 +485,8 @@ for s, cols in res["per seed"].items():
 # %% [markdown]
 # ## Verdicts
 #
-# Controls first: does each arm beat its untrained start and,
-# the gate, the frozen backbone + GeM by more than 2 SE? Then the paired differences, shown only if the
-# baseline passes the gate; lower $p$ is better.
+# Controls first: does each arm beat its start and the gate (frozen backbone + GeM) by over 2 SE? Paired
+# differences follow only if the baseline passes; lower $p$ is better.
 
 # %%
 CLIQUE, SPARSE, RANDOM = "sparse + dense cliques", "sparse only", "sparse + dense random"
@@ -560,7 +556,7 @@ record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "max
 #
 # Cliques add negatives a few frames from the positive. That helps only if a model's wrong top-1 lands a few
 # frames from the true place: a **near miss**. The switch is frame density: a frame every 1 m (**premise on**)
-# or every 2.5 m (**premise off**). Each world trains the three arms (5 seeds) and tests on over 1,000 queries.
+# or every 2.5 m (**premise off**). Each world trains the three arms; over 1,000 test queries.
 
 # %%
 # NBVAL_TOLERANCE=0.02
@@ -621,11 +617,70 @@ plt.show()
 #
 # * *sparse + dense cliques − sparse only, premise on*: helps; premise off: helps too. Yet sparse only ends
 #   below the frozen backbone + GeM in both worlds, so the paper's test stays inconclusive.
-# * *sparse + dense cliques − sparse + dense random, premise on*: hurts, less than with the premise off.
-# * *sparse + dense cliques − sparse + dense random, premise off*: hurts.
+# * *sparse + dense cliques − sparse + dense random, premise on*: hurts; premise off: hurts more.
 #
-# Cliques remove a few near misses but add more farther failures (the per-100-queries counts). The cause is not
-# isolated here (Exercise 5).
+# Cliques remove a few near misses but add more farther failures (the per-100-queries counts).
+
+# %% [markdown]
+# ## Why cliques lose: one change at a time
+#
+# Each probe changes one thing in the premise-on clique arm, on the same 5 seeds
+# (`vpr_nb.onoff.clique_probes`). The table profiles each dense half over 10 epochs of batches.
+
+# %%
+# NBVAL_TOLERANCE=0.02
+RANDOM, CLIQUES = clique_probes.RANDOM, clique_probes.CLIQUES
+if PROFILE == "reproduce":
+    t0 = time.perf_counter()
+    probes = clique_probes.run(pres["arms"]["on"])
+    results.save("07_probes", clique_probes.EXPERIMENT, {**probes, "seconds": round(time.perf_counter() - t0, 1)})
+pp = results.load("07_probes", clique_probes.EXPERIMENT)["results"]
+print(f"notebooks/results/07_probes.json: premise on, 5 paired seeds, {pp['seconds'] / 60:.0f} min on 2 cores\n")
+r1 = {**pp["paired with"], **{p: a["R@1"] for p, a in pp["arms"].items()}}
+print(f"{'dense half':28s} {'nearest negative':>16s} {'share <= 2.5 m':>14s} {'1st quarter':>11s} {'test R@1':>15s}")
+for name, b in pp["batches"].items():
+    print(f"{name:28s} {b['nearest other-place image (m)']:14.1f} m {b['images with a negative within 2.5 m']:14.3f} "
+          f"{b['places in the first quarter']:11.3f} {ms(r1[name]):>15s}")
+print()
+for name, diffs in pp["gaps"].items():
+    print(f"{name}: {gap_text(diffs)}")
+
+# %%
+names = list(pp["batches"])
+short = [textwrap.fill(n.replace("sparse + dense ", "").replace("cliques, ", ""), 10) for n in names]
+fig, axes = plt.subplots(1, 2, figsize=(11, 3.4))
+x = np.arange(len(names))
+axes[0].bar(x - 0.2, [pp["batches"][n]["places in the first quarter"] for n in names], 0.4, color="tab:blue",
+            label="places in the route's first quarter")
+axes[0].bar(x + 0.2, [pp["batches"][n]["images with a negative within 2.5 m"] for n in names], 0.4,
+            color="tab:orange", label="images with a negative within 2.5 m")
+axes[0].set_xticks(x, short, fontsize=7)
+axes[0].set(ylabel="share", title="each dense half, 10 epochs of batches", ylim=(0, 1.3))
+axes[0].legend(fontsize=7)
+gaps = [paired_gap(PREM["comparisons"][f"{CLIQUES} − {RANDOM}"]["on"])] + \
+       [paired_gap(pp["gaps"][f"{p} − {RANDOM}"]) for p in pp["arms"]]
+axes[1].bar(x[1:], [g[0] for g in gaps], 0.6, yerr=[2 * g[1] for g in gaps], capsize=3,
+            color=["tab:grey"] + ["tab:green"] * len(pp["arms"]))
+axes[1].axhline(0, color="k", lw=0.8)
+axes[1].set_xticks(x[1:], short[1:], fontsize=7)
+axes[1].set(ylabel="gap to dense random (test R@1)", title="premise on, 5 seeds, ± 2 SE")
+fig.tight_layout()
+plt.show()
+
+# %% [markdown]
+# **Figure 5.** Left: each dense half's places in the route's first quarter (blue) and images with a negative
+# within 2.5 m (orange). Right: each variant's paired gap to random dense places; grey: unchanged cliques.
+
+# %% [markdown]
+# **Reading the probes.** Every variant still loses to random dense places (*− sparse + dense random*: hurts).
+#
+# * *cliques, τ 2.5 m − sparse + dense cliques*: helps (+0.021); no negative within 2.5 m (0.658 before).
+# * *cliques, random image order − sparse + dense cliques*: helps (+0.021). In index order, the search packed
+#   places 2 m apart in the route's first quarter (0.937 of them).
+# * *4 cliques + 4 random − sparse + dense cliques*: helps (+0.034); half its batch is the baseline's.
+# * *cliques, Eq. (1) uniform − sparse + dense cliques*: no measurable effect from the look-alike draw.
+#
+# Negatives 2 m away, as alike as positives, cost about a third of the gap; the rest is not isolated.
 
 # %% [markdown]
 # ## Graded exercise: how far from a clique batch is a batch?
@@ -780,23 +835,18 @@ check("pick_clique_batch", [Case(name, (b, utm_h, t), expect=want) for name, b, 
 #
 # 1. **Refresh.** Pass `group_descriptors=None, refresh_every=1` to `CliqueBatchMaker`. Does the paired
 #    difference change?
-#    <details><summary>Hint</summary>Build a fourth arm like <code>dense_cliques</code> and train it with
-#    <code>search_methods</code> on the same seeds; compare seed by seed.</details>
+#    <details><summary>Hint</summary>Train a fourth arm on the same seeds; compare seed by seed.</details>
 # 2. **Threshold.** On the route, try $\tau = 25$ m with places of 10 frames. What happens to $p(5, 10)$ and
 #    R@1?
-#    <details><summary>Hint</summary>The loss then pulls together frames 22.5 m apart; positives stay ±1
-#    frame.</details>
-# 3. **One city.** Call `clique_batches` on `city` without `headings`: how many places mix headings? On a
-#    multi-city set without `regions`, how far apart are a batch's places?
-#    <details><summary>Hint</summary>Count places above 45° with <code>heading_spread</code>; distances come from
-#    <code>batch_statistics</code>.</details>
+#    <details><summary>Hint</summary>The loss then pulls together frames 22.5 m apart.</details>
+# 3. **One city.** Call `clique_batches` on `city` without `headings`: how many places mix headings?
+#    <details><summary>Hint</summary>Count places above 45° with <code>heading_spread</code>.</details>
 # 4. **Similar groups.** Set `similar_groups=0`. How many anchors does a batch need, and how do place distances
 #    change?
 #    <details><summary>Hint</summary>Count distinct anchors; compare <code>batch_statistics</code>.</details>
-# 5. **Why cliques lose.** Change one thing in the clique arm of the premise-on world: the threshold $\tau$
-#    (2.5 m), or 4 clique places + 4 random ones. Which moves the gap to dense random?
-#    <details><summary>Hint</summary><code>onoff_clique.batch_makers</code> builds the arms; train with
-#    <code>search_methods</code> on 5 seeds and compare with <code>paired_differences</code>.</details>
+# 5. **Two changes.** Add a dense half with $\tau = 2.5$ m *and* a shuffled image order. Do the two gains add up?
+#    <details><summary>Hint</summary>Extend <code>clique_probes.dense_makers</code>; train as
+#    <code>clique_probes.run</code> does.</details>
 #
 # ## Takeaways
 #
@@ -809,6 +859,7 @@ check("pick_clique_batch", [Case(name, (b, utm_h, t), expect=want) for name, b, 
 #   backbone.
 # * **The premise moves the mining-only gap but does not flip it.** Near misses rise from 0.040 to 0.176 of
 #   the frozen failures; cliques − dense random goes from −0.085 to −0.059, still below zero.
+# * Negatives 2 m away cost about a third of that gap (+0.021 without them); the look-alike draw costs nothing.
 
 # %% [markdown]
 # ## Self-check
