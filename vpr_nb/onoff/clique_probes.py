@@ -68,8 +68,9 @@ EXPERIMENT = {
 
 
 def dense_makers(route: dict, threshold: float, route_group_descriptors) -> dict:
-    """``{name: make_batches}`` of the dense half (:data:`oc.HALF` places) of the two premise arms and of each
-    probe, over the route training set ``route`` (:func:`vpr_nb.onoff.clique.route_training_set`)."""
+    """``{name: make_batches}`` of the dense half (``HALF`` places, :mod:`vpr_nb.onoff.clique`) of the two
+    premise arms and of each probe, over the route training set ``route``
+    (:func:`vpr_nb.onoff.clique.route_training_set`)."""
     k, half, nb = RECIPE.images_per_place, oc.HALF, oc.NB
 
     def cliques(places, tau=threshold, descriptors=route_group_descriptors):

@@ -48,8 +48,8 @@ def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images
 
     * which clique: the original takes the first maximal clique of ``networkx.find_cliques``
       (DFS order); here it is the maximal clique grown greedily (smallest index first) from the
-      smallest-index alive image that lies in a clique of ``>= images_per_place`` images. Either way
-      a batch fills from the lowest-index groups among those drawn: where indices follow the
+      smallest-index alive image that lies in a clique of ``>= images_per_place`` images. So a batch
+      fills from the lowest-index groups among those drawn: where indices follow the
       geography (a route numbered along its track) the places crowd at its start and lie as close as
       the threshold allows (notebook 07's route: 0.94 of them in its first quarter,
       :mod:`vpr_nb.onoff.clique_probes`); shuffle the images to spread them;
