@@ -113,3 +113,20 @@ def test_the_stored_probes_pair_with_the_stored_premise_arms_and_the_notebook_pr
     out = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
     missing = [f"{name}: {gap_text(d)}" for name, d in probes["gaps"].items() if f"{name}: {gap_text(d)}" not in out]
     assert not missing, f"the stored notebook does not print: {missing}"
+
+
+def test_the_stored_batch_profiles_come_back_from_todays_code():
+    """The committed probes file's profile of each dense half is what today's samplers mine (the probes' batches
+    have not moved since the file was made)."""
+    path = RESULTS / "07_probes.json"
+    if not path.exists():
+        pytest.skip("07_probes.json is not committed yet")
+    stored = json.loads(path.read_text(encoding="utf-8"))["results"]["batches"]
+    ds = oc.world_splits(cp.WORLD)
+    route = oc.route_training_set(ds.train)
+    dense = cp.dense_makers(route, float(ds.train.pos_radius), oc.group_descriptors(oc.frozen_model(), route))
+    assert set(dense) == set(stored)
+    for name, make in dense.items():
+        b = np.concatenate([make(None, e, np.random.default_rng(e)) for e in range(cp.PROFILE_EPOCHS)])
+        got = {**cp.batch_profile(b, route["utm"], float(ds.train.pos_radius)), **cp.route_coverage(b, route["clusters"])}
+        assert got == stored[name], name

@@ -73,22 +73,20 @@ def dense_makers(route: dict, threshold: float, route_group_descriptors) -> dict
     (:func:`vpr_nb.onoff.clique.route_training_set`)."""
     k, half, nb = RECIPE.images_per_place, oc.HALF, oc.NB
 
-    def cliques(places, tau=threshold, descriptors=route_group_descriptors):
-        return CliqueBatchMaker(route["images"], route["utm"], route["clusters"], places, nb, images_per_place=k,
-                                same_place_threshold=tau, similar_groups=oc.SIMILAR_GROUPS,
-                                group_descriptors=descriptors)
+    def cliques(places, tau=threshold, descriptors=route_group_descriptors, order=None):
+        take = (lambda a: a) if order is None else (lambda a: a[order])   # noqa: E731
+        maker = CliqueBatchMaker(take(route["images"]), take(route["utm"]), take(route["clusters"]), places, nb,
+                                 images_per_place=k, same_place_threshold=tau, similar_groups=oc.SIMILAR_GROUPS,
+                                 group_descriptors=descriptors)
+        return maker if order is None else Reordered(maker, order)
 
     uniform = np.ones_like(np.asarray(route_group_descriptors, dtype=np.float32))
-    order = np.random.default_rng(0).permutation(len(route["utm"]))
-    shuffled = Reordered(CliqueBatchMaker(
-        route["images"][order], route["utm"][order], route["clusters"][order], half, nb, images_per_place=k,
-        same_place_threshold=threshold, similar_groups=oc.SIMILAR_GROUPS, group_descriptors=route_group_descriptors),
-        order)
+    shuffled = np.random.default_rng(0).permutation(len(route["utm"]))
     return {RANDOM: RandomPlaceBatches(route["groups"], half, k, nb, each_place_once=False),
             CLIQUES: cliques(half),
             "cliques, τ 2.5 m": cliques(half, tau=TAU),
             "cliques, Eq. (1) uniform": cliques(half, descriptors=uniform),
-            "cliques, random image order": shuffled,
+            "cliques, random image order": cliques(half, order=shuffled),
             "4 cliques + 4 random": MixedPlaceBatches(
                 [cliques(half // 2), RandomPlaceBatches(route["groups"], half - half // 2, k, nb,
                                                         each_place_once=False)], [0, 0])}
