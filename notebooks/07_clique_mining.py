@@ -680,7 +680,7 @@ plt.show()
 # * *4 cliques + 4 random − sparse + dense cliques*: helps (+0.034); half its batch is the baseline's.
 # * *cliques, Eq. (1) uniform − sparse + dense cliques*: no measurable effect from the look-alike draw.
 #
-# Negatives 2 m away, as alike as positives, cost about a third of the gap; the rest is not isolated.
+# Negatives 2 m away cost about a third of the gap; the rest is not isolated here.
 
 # %% [markdown]
 # ## Graded exercise: how far from a clique batch is a batch?
