@@ -859,7 +859,8 @@ check("pick_clique_batch", [Case(name, (b, utm_h, t), expect=want) for name, b, 
 #   backbone.
 # * **The premise moves the mining-only gap but does not flip it.** Near misses rise from 0.040 to 0.176 of
 #   the frozen failures; cliques − dense random goes from −0.085 to −0.059, still below zero.
-# * Negatives 2 m away cost about a third of that gap (+0.021 without them); the look-alike draw costs nothing.
+# * Negatives 2 m away cost about a third of that gap (+0.021 without them); the look-alike draw has no
+#   measurable effect.
 
 # %% [markdown]
 # ## Self-check
