@@ -609,11 +609,11 @@ check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 qu
 #
 # * Eq. (3) is one line of torch. It equals `torch.nn.TripletMarginLoss` (sum reduction) up to its `eps`.
 # * Only margin-violating triplets carry gradient. After training, random negatives rarely violate the
-#   margin (about one in eight), while most mined ones still do. So mining decides what the network learns.
+#   margin (about one in seven), while most mined ones still do. So mining decides what the network learns.
 # * Weak GPS supervision needs care: without a heading filter, the untrained network's positive faces the
 #   query's way for only 0.451 of the queries. The stored run does not measure what the filter is worth (Exercise 1).
 # * A 3-epoch CPU run from random weights lifts test R@1 far above raw pixels, not to the course backbone's.
-#   It has not converged: validation R@1 still rose from 0.602 to 0.684 in the last epoch.
+#   It has not converged: validation R@1 still rose from 0.602 to 0.647 in the last epoch.
 # * A collapsed run's loss climbs back near $M \cdot m$ and its mean pairwise cosine approaches 1 (the lr 0.5
 #   run).
 # * Notebooks 03–07 fine-tune the frozen course backbone, changing only the loss, the aggregator or the batches.
