@@ -108,8 +108,17 @@ site: dev
 test-fast: dev
 	$(BIN)/python -m pytest -p no:cacheprovider -q tests -m "not slow"
 
+# make reproduce [NOTEBOOK=07] [STORE=off|DIR] [DASK=tcp://HOST:8786] [WORKERS=N]: finished fine-tunes are kept in
+# reports/task-store (STORE), so a run started again after an interruption trains only what is missing;
+# make reproduce NOTEBOOK=07 ARMS='cliques*' SEEDS=2: those arms and seeds alone, beside the committed numbers
+# (vpr_nb.remake; docs/reproduction.md)
 reproduce: venv
-	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports --jobs $(JOBS)$(if $(NOTEBOOK), --notebook $(NOTEBOOK))
+ifneq ($(ARMS)$(SEEDS),)
+	@test -n "$(NOTEBOOK)" || { echo "error: ARMS and SEEDS need NOTEBOOK, e.g. make reproduce NOTEBOOK=07 ARMS='cliques*' SEEDS=2"; exit 2; }
+	$(BIN)/python -m vpr_nb.kernels --run $(BIN)/python -m vpr_nb.remake $(NOTEBOOK) --arms '$(or $(ARMS),*)'$(if $(SEEDS), --seeds $(SEEDS))$(if $(WORKERS), --workers $(WORKERS))
+else
+	$(BIN)/python -m vpr_nb.report --profile $(PROFILE) --out reports --jobs $(JOBS)$(if $(NOTEBOOK), --notebook $(NOTEBOOK))$(if $(STORE), --store $(STORE))$(if $(DASK), --dask $(DASK))$(if $(WORKERS), --workers $(WORKERS))
+endif
 
 # re-make the course backbone (vpr_nb/weights/course_backbone.pt + .json), about 6 min on 2 cores
 pretrain: venv

@@ -8,13 +8,13 @@ import torch
 
 from vpr_nb.aggregation import AGGREGATOR_NAMES, SALAD
 from vpr_nb.evaluation import images_to_tensor
-from vpr_nb.feature_cache import FrozenFeatureCache
 from vpr_nb.losses import DWTripletLoss, MultiSimilarityLoss, TripletLoss
 from vpr_nb.models import build_model, init_salad
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.recipe import (RECIPE, Method, Recipe, build_start, fine_tune, lr_search, make_source, place_batch_labels,
                            search_methods)
 from vpr_nb.recipe.search import ladder_step
+from vpr_nb.recipe.task import _cache as task_cache
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import History, PlaceBatchSource, TrainConfig, TripletSource, train
 
@@ -176,8 +176,9 @@ def test_lr_search_refuses_a_small_validation_split_on_one_seed(world):
 def test_lr_search_picks_the_best_grid_point_on_validation(world):
     tr, va = world
     recipe = dataclasses.replace(FAST, max_epochs=1, lr_grid=(1e-3, 1.0), search_seeds=2, lr_extend=0)
-    cache = FrozenFeatureCache()
-    search = lr_search(Method("GeM", "gem", paper_lr=1e-4), tr, va, recipe, seeds=(0, 1, 2), cache=cache)
+    cache = task_cache(recipe)                        # this process's frozen-block cache, shared by every task
+    before = cache.stats()
+    search = lr_search(Method("GeM", "gem", paper_lr=1e-4), tr, va, recipe, seeds=(0, 1, 2))
     assert search.grid == (1e-4, 1e-3, 1.0)
     assert search.search_seeds == (0, 1) and all(len(v) == 2 for v in search.val_recall.values())
     means = {lr: np.mean(v) for lr, v in search.val_recall.items()}
@@ -191,7 +192,7 @@ def test_lr_search_picks_the_best_grid_point_on_validation(world):
     alone = fine_tune(Method("GeM", "gem", paper_lr=1e-4), tr, va, recipe, seed=2, lr=search.lr)
     for (k, x), (_, y) in zip(alone.model.state_dict().items(), search.runs[2].model.state_dict().items()):
         assert torch.equal(x, y), k
-    assert cache.resets == 0 and cache.hits > cache.misses              # one cache for all seven runs
+    assert cache.resets == before["resets"] and cache.hits - before["hits"] > cache.misses - before["misses"]
     assert "<- chosen" in search.table() and "mean over seeds [0, 1]; grid" in search.table()
     # a validation split of min_val_queries queries lets one seed choose
     one = fine_tune(Method("GeM", "gem"), tr, va, dataclasses.replace(recipe, min_val_queries=len(va.q_images)), 0)

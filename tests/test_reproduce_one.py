@@ -250,7 +250,7 @@ def test_run_notebook_alone_writes_beside_the_committed_results_and_compares(tmp
     before = committed_file.read_bytes()
     seen = {}
 
-    def fake_run_report(profile, out_, notebooks_dir, jobs=1, *, sources=None, heartbeat=None):
+    def fake_run_report(profile, out_, notebooks_dir, jobs=1, *, sources=None, heartbeat=None, store=None):
         seen.update(profile=profile, sources=[p.name for p in sources], env=os.environ.get(RESULTS_DIR_ENV),
                     dirty=os.environ.get(one.ALLOW_DIRTY_ENV), copies=sorted(os.listdir(os.environ[RESULTS_DIR_ENV])))
         heartbeat.start("03_loss")
@@ -277,7 +277,7 @@ def test_run_notebook_alone_into_committed_compares_with_the_file_it_replaced(tm
     _sources(nbdir)
     _results_file(committed / "03_loss.json", COMMITTED)
 
-    def fake_run_report(profile, out_, notebooks_dir, jobs=1, *, sources=None, heartbeat=None):
+    def fake_run_report(profile, out_, notebooks_dir, jobs=1, *, sources=None, heartbeat=None, store=None):
         assert RESULTS_DIR_ENV not in os.environ
         if profile == "reproduce":
             os.utime(_results_file(committed / "03_loss.json", NEW), ns=(1, 1))

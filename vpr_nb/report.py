@@ -31,7 +31,6 @@ import json
 import math
 import os
 import platform
-import re
 import subprocess
 import sys
 import time
@@ -40,8 +39,12 @@ from pathlib import Path
 from urllib.parse import quote
 
 from . import reproduce_one as one
+from . import schedule
+from .engine import DASK_ENV, TIMES_ENV, WORKERS_ENV
 from .kernels import cpu_description, pin_this_process
 from .package_data import RESULTS_DIR_ENV, committed_results_dir
+from .report_markdown import NON_FINITE, _table, escape_markdown, format_value, render_table  # noqa: F401 - re-exported
+from .task_store import STORE_ENV
 
 RESULTS_ENV = "VPR_NB_RESULTS"
 PROFILES = ("ci", "reproduce")
@@ -80,91 +83,6 @@ def record(notebook: str, results: Mapping) -> None:
         return
     with open(path, "a", encoding="utf-8") as fh:
         fh.write(json.dumps(payload) + "\n")
-
-
-# ---------------------------------------------------------------------------------------------
-# Markdown rendering
-# ---------------------------------------------------------------------------------------------
-# Recorded strings and keys are text, never markup: ``&``, ``<`` and ``>`` become HTML entities (no tag, in
-# Markdown or pasted into HTML), the Markdown punctuation that makes links, images, code and table cells is
-# backslash-escaped (``\\`` first, so that a trailing backslash cannot undo an escape), and the colon of a URL
-# scheme, the dot of ``www.`` and the ``@`` of an e-mail address become numeric references, so that no renderer
-# turns them into an autolink (GitHub links bare ``https://…``, ``www.…`` and ``a@b.c``).
-_MARKUP = str.maketrans({"\\": "\\\\", "&": "&amp;", "<": "&lt;", ">": "&gt;", "[": "\\[", "]": "\\]",
-                         "(": "\\(", ")": "\\)", "!": "\\!", "`": "\\`", "|": "\\|", "\n": " ", "\r": " "})
-_AUTOLINK = re.compile(r"(?i)(?<![a-z0-9+.-])(?:https?|ftp|javascript|vbscript|data|file|mailto|xmpp):"
-                       r"|(?<![a-z0-9])www\.|@(?=[\w+-]+\.[\w-])")
-_REFERENCE = {":": "&#58;", ".": "&#46;", "@": "&#64;"}
-# A value that is not a finite number, shown so that it cannot pass for one: record() stores NaN / ±inf as the
-# strings "nan" / "inf" / "-inf" (JSON has no such numbers); a float passed to render_table directly is NaN / inf.
-NON_FINITE = {"nan": "**⚠ NaN**", "inf": "**⚠ inf**", "+inf": "**⚠ inf**", "-inf": "**⚠ -inf**",
-              "infinity": "**⚠ inf**", "+infinity": "**⚠ inf**", "-infinity": "**⚠ -inf**"}
-
-
-def escape_markdown(text) -> str:
-    """``text`` (any recorded string or key) as literal Markdown and HTML: no tag, link, image, code span,
-    autolink or table cell boundary can come from it; a newline becomes a space."""
-    text = str(text).translate(_MARKUP)
-    return _AUTOLINK.sub(lambda m: m.group(0)[:-1] + _REFERENCE[m.group(0)[-1]], text)
-
-
-def format_value(value) -> str:
-    """One table cell: floats to 3 decimals (3 significant digits when tiny), lists comma-joined, dicts as
-    ``{key: value, ...}``, strings escaped (:func:`escape_markdown`).
-
-    A value that is not a finite number (a float NaN / ±inf, or the strings ``"nan"`` / ``"inf"`` / ``"-inf"``
-    that :func:`record` stores for them) is shown in bold with a warning sign: ``**⚠ NaN**``, ``**⚠ inf**``,
-    ``**⚠ -inf**`` (:data:`NON_FINITE`)."""
-    if isinstance(value, bool) or value is None:
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            return NON_FINITE[str(value)]
-        return f"{value:.3f}" if value == 0 or abs(value) >= 1e-3 else f"{value:.3g}"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, (list, tuple)):
-        return ", ".join(format_value(v) for v in value)
-    if isinstance(value, Mapping):
-        return "{" + ", ".join(f"{escape_markdown(k)}: {format_value(v)}" for k, v in value.items()) + "}"
-    text = str(value)
-    return NON_FINITE.get(text.strip().lower()) or escape_markdown(text)
-
-
-def _table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
-
-
-def render_table(results: Mapping) -> str:
-    """Recorded results as Markdown.
-
-    A flat dict becomes a two-column table (``name | value``); a dict of dicts becomes one table
-    with the outer keys as rows and the union of the inner keys as columns (blank where missing);
-    lists are comma-joined. A dict mixing both gives the flat table followed by the grid; a value
-    that is itself a dict of dicts gets its own grid below, titled with its key. Keys and strings are
-    escaped (:func:`escape_markdown`: no tag, link or image can come from a recorded result), and a value that
-    is not a finite number is marked ``**⚠ NaN**`` / ``**⚠ inf**`` (:func:`format_value`).
-    """
-    if not isinstance(results, Mapping) or not results:
-        raise ValueError("render_table() needs a non-empty dict, e.g. {'R@1': 0.71}")
-    flat = {k: v for k, v in results.items() if not isinstance(v, Mapping)}
-    deeper = {k: v for k, v in results.items() if isinstance(v, Mapping) and v
-              and any(isinstance(x, Mapping) for x in v.values())}
-    nested = {k: v for k, v in results.items() if isinstance(v, Mapping) and k not in deeper}
-    parts = []
-    if flat:
-        parts.append(_table(["name", "value"], [[escape_markdown(k), format_value(v)] for k, v in flat.items()]))
-    if nested:
-        columns: list[str] = []
-        for inner in nested.values():
-            columns += [c for c in inner if c not in columns]
-        rows = [[escape_markdown(k)] + [format_value(inner[c]) if c in inner else "" for c in columns]
-                for k, inner in nested.items()]
-        parts.append(_table([""] + [escape_markdown(c) for c in columns], rows))
-    parts += [f"**{escape_markdown(k)}**\n\n{render_table(v)}" for k, v in deeper.items()]
-    return "\n\n".join(parts)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -334,7 +252,9 @@ def _run_one(src: Path, out: Path, profile: str) -> dict:
     out_nb = out / "notebooks" / src.name
     records = out / "records" / f"{src.stem}.jsonl"
     records.write_text("", encoding="utf-8")
-    entry = {"name": src.stem, **run_notebook(src, out_nb, profile, records)}
+    started = time.time()
+    with one.environment({TIMES_ENV: str((out / "records" / f"{src.stem}.tasks.jsonl").resolve())}):
+        entry = {"name": src.stem, "started": round(started, 3), **run_notebook(src, out_nb, profile, records)}
     entry["results"], _ = _read_records(records, 0)
     figures = extract_figures(json.loads(out_nb.read_text(encoding="utf-8")), src.stem, out / "figures") \
         if out_nb.exists() else []
@@ -343,12 +263,17 @@ def _run_one(src: Path, out: Path, profile: str) -> dict:
 
 
 def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: str = DEFAULT_PATTERN,
-               jobs: int = 1, *, sources: list[Path] | None = None, heartbeat: one.Heartbeat | None = None) -> dict:
+               jobs: int = 1, *, sources: list[Path] | None = None, heartbeat: one.Heartbeat | None = None,
+               store=None) -> dict:
     """Run the notebook sequence and write the report; returns the ``results.json`` payload.
 
     ``jobs`` > 1 runs that many notebooks at once (each kernel uses one torch thread), a notebook starting
     only after the notebooks it reads (:func:`notebook_dependencies`); the report lists them in order.
-    ``sources`` runs those notebooks instead of ``pattern``'s; ``heartbeat`` is told when each starts and ends."""
+    ``sources`` runs those notebooks instead of ``pattern``'s; ``heartbeat`` is told when each starts and ends.
+    ``store``: the task store the kernels reuse finished fine-tunes from (:mod:`vpr_nb.task_store`; None: off), so
+    a run started again after an interruption trains only what is missing. Every round of tasks is logged, and
+    ``results.json`` / ``results.md`` give the idle share and the simulated scaling (:mod:`vpr_nb.schedule`)."""
+    import resource
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     if profile not in PROFILES:
@@ -367,7 +292,8 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
                 out / "results.json", out / "results.md", out / "results.jsonl", out / "comparison.md"]:
         old.unlink(missing_ok=True)
     header = environment_header(profile)
-    start = time.perf_counter()
+    os.environ[STORE_ENV] = str(Path(store).resolve()) if store else "off"     # the kernels inherit it
+    start, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
     done: dict[str, dict] = {}
 
     def started(src):
@@ -402,15 +328,20 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     wall = time.perf_counter() - start
     print(f"[done] {len(entries)} notebooks in {wall / 60:.1f} min wall ({profile} profile, {jobs} at once; "
           f"{sum(e['seconds'] for e in entries) / 60:.1f} min of notebook time)", flush=True)
-    payload = {"header": header, "notebooks": entries, "wall_seconds": round(wall, 1), "jobs": jobs}
+    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    tasks = schedule.run_summary(entries, {e["name"]: schedule.read_rounds(out / "records" / f"{e['name']}.tasks.jsonl")
+                                           for e in entries}, wall, cpu1.ru_utime + cpu1.ru_stime
+                                 - cpu0.ru_utime - cpu0.ru_stime, os.cpu_count() or 1)
+    payload = {"header": header, "notebooks": entries, "wall_seconds": round(wall, 1), "jobs": jobs, "tasks": tasks}
     (out / "results.json").write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
-    (out / "results.md").write_text(render_markdown(header, entries), encoding="utf-8")
+    (out / "results.md").write_text(render_markdown(header, entries) + "\n".join(schedule.summary_markdown(tasks))
+                                    + "\n", encoding="utf-8")
     return payload
 
 
 def run_notebook_alone(which: str, profile: str = "reproduce", out="reports", notebooks_dir="notebooks",
                        jobs: int = 1, *, into_committed: bool = False, committed_dir=None,
-                       progress_every: float = 60.0) -> dict:
+                       progress_every: float = 60.0, store=None) -> dict:
     """Run notebook ``which`` (``"03"``) alone, after the notebooks it reads whose committed results are missing:
     print an estimate first and a progress line every ``progress_every`` seconds, then its numbers beside the
     committed ones (also written to ``OUT/comparison.md``). Its results go to ``OUT/results/`` (which holds copies
@@ -435,7 +366,7 @@ def run_notebook_alone(which: str, profile: str = "reproduce", out="reports", no
         one.prepare_results_dir(results_dir, committed, [p.stem for p in run])
         env = {RESULTS_DIR_ENV: str(results_dir.resolve()), one.ALLOW_DIRTY_ENV: "1"}
     with one.environment(env), one.Heartbeat(estimates, progress_every) as beat:
-        payload = run_report(profile, out, notebooks_dir, jobs=jobs, sources=run, heartbeat=beat)
+        payload = run_report(profile, out, notebooks_dir, jobs=jobs, sources=run, heartbeat=beat, store=store)
     new_file = results_dir / f"{target.stem}.json"
     rewritten = new_file.is_file() and (not into_committed or new_file.stat().st_mtime_ns != before_mtime)
     text = one.render_comparison(target.stem, before, one.read_results(new_file) if rewritten else None,
@@ -460,6 +391,12 @@ def main(argv=None) -> int:
                         "beside the committed ones")
     parser.add_argument("--into-committed", action="store_true", help="with --notebook: write its results into "
                         "notebooks/results/ (the committed results), as a run of every notebook does")
+    parser.add_argument("--store", default=None, metavar="DIR", help="task store: finished fine-tunes are reused "
+                        "from it, so a run started again trains only what is missing (default: OUT/task-store; "
+                        "'off': none)")
+    parser.add_argument("--dask", default=None, metavar="ADDRESS", help="run the fine-tunes on the Dask scheduler "
+                        "at ADDRESS (docs/reproduction.md); default: local processes")
+    parser.add_argument("--workers", type=int, default=None, help="local processes per notebook for its fine-tunes")
     parser.add_argument("--progress-every", type=float, default=60.0, metavar="SECONDS",
                         help="with --notebook: a progress line this often (default 60; 0 for none)")
     args = parser.parse_args(argv)
@@ -467,18 +404,27 @@ def main(argv=None) -> int:
         parser.error("--into-committed goes with --notebook NN")
     if args.notebook is not None and args.notebooks != DEFAULT_PATTERN:
         parser.error("give --notebook NN or --notebooks PATTERN, not both")
+    store = None if (args.store or "").lower() == "off" else (args.store or str(Path(args.out) / "task-store"))
+    env = {k: str(v) for k, v in ((DASK_ENV, args.dask), (WORKERS_ENV, args.workers)) if v is not None}
     try:
-        if args.notebook is not None:
-            payload = run_notebook_alone(args.notebook, args.profile, args.out, args.notebooks_dir, args.jobs,
-                                         into_committed=args.into_committed, progress_every=args.progress_every)
-        else:
-            payload = run_report(args.profile, args.out, args.notebooks_dir, args.notebooks, jobs=args.jobs)
+        if args.workers is not None and args.workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        with one.environment(env):
+            payload = _run(args, store)
     except (ValueError, FileNotFoundError) as exc:
         parser.error(str(exc))  # exits with status 2 and the message
     failed = [nb["name"] for nb in payload["notebooks"] if nb["status"] != "ok"]
     print(f"report: {Path(args.out) / 'results.md'}"
           + (f"; FAILED: {', '.join(failed)}" if failed else "; all notebooks ok"))
     return 1 if failed else 0
+
+
+def _run(args, store) -> dict:
+    if args.notebook is not None:
+        return run_notebook_alone(args.notebook, args.profile, args.out, args.notebooks_dir, args.jobs,
+                                  into_committed=args.into_committed, progress_every=args.progress_every,
+                                  store=store)
+    return run_report(args.profile, args.out, args.notebooks_dir, args.notebooks, jobs=args.jobs, store=store)
 
 
 if __name__ == "__main__":

@@ -234,9 +234,10 @@ def premise_values(tests: dict, frozen=None) -> dict:
     return out
 
 
-def run(seeds=SEEDS, workers: int = 3, max_epochs: int | None = None) -> dict:
+def run(seeds=SEEDS, workers: int = 3, max_epochs: int | None = None, select=None) -> dict:
     """The reproduce profile: the three arms in both worlds (``workers`` processes: one per arm), the frozen
-    model's near misses, and the premise record (``max_epochs``: a shorter run, e.g. a smoke test; None: R07's)."""
+    model's near misses, and the premise record (``max_epochs``: a shorter run, e.g. a smoke test; None: R07's).
+    ``select`` (:class:`vpr_nb.recipe.arms.Selection`): only those arms and seeds, returned as ``{"arms"}``."""
     if isinstance(seeds, (int, np.integer, str)):
         raise ValueError(f"seeds must be a list of training seeds, e.g. (0, 1, 2, 3, 4), got {seeds!r}")
     seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
@@ -253,9 +254,15 @@ def run(seeds=SEEDS, workers: int = 3, max_epochs: int | None = None) -> dict:
         ds = world_splits(world)
         tests = test_splits(test_worlds(world))
         spec = {world: {"train": ds.train, "methods": methods(city_train, ds.train, frozen)}}
-        arms[world] = run_arms(spec, ds.val, tests, seeds, recipe, workers=workers, lr=recipe.lr,
-                               extra=arm_near_misses)[world]
+        found = run_arms(spec, ds.val, tests, seeds, recipe, workers=workers, lr=recipe.lr,
+                         extra=arm_near_misses, select=select)
+        if select is not None:
+            arms.update(found)
+            continue
+        arms[world] = found[world]
         values.update(premise_values({world: tests}, frozen))
+    if select is not None:
+        return {"arms": arms}
     record = premise_record(
         QUANTITY, "not found", values,
         {f"{a} − {b}": {w: paired_differences(arms[w][a]["R@1"], arms[w][b]["R@1"]) for w in WORLDS}

@@ -150,11 +150,12 @@ def _checked_baseline(baseline, seeds) -> dict:
     return {a: [float(v) for v in baseline[a]["R@1"]] for a in (RANDOM, CLIQUES)}
 
 
-def run(baseline: Mapping, seeds=oc.SEEDS, workers: int = 3, max_epochs: int | None = None) -> dict:
+def run(baseline: Mapping, seeds=oc.SEEDS, workers: int = 3, max_epochs: int | None = None, select=None) -> dict:
     """Train each probe (:data:`PROBES`) in the premise-on world on ``seeds`` (as :func:`vpr_nb.onoff.clique.run`
     trains its arms) and pair it with ``baseline``, the premise-on arms of ``07_premise.json`` trained on the same
     seeds. Returns ``{"arms": {probe: run_arms arm}, "paired with": {arm: [R@1 per seed]}, "gaps": {"<probe> −
-    <arm>": [paired differences]}, "batches": {dense half: batch_profile and route_coverage}}``."""
+    <arm>": [paired differences]}, "batches": {dense half: batch_profile and route_coverage}}``. ``select``
+    (:class:`vpr_nb.recipe.arms.Selection`): only those probes and seeds, returned as ``{"arms"}``."""
     if isinstance(seeds, (int, np.integer, str)):
         raise ValueError(f"seeds must be a list of training seeds, e.g. (0, 1, 2, 3, 4), got {seeds!r}")
     seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
@@ -179,7 +180,10 @@ def run(baseline: Mapping, seeds=oc.SEEDS, workers: int = 3, max_epochs: int | N
                                            (oc.HALF, oc.HALF)))
                for name in PROBES]
     tests = test_splits(oc.test_worlds(WORLD))
-    arms = run_arms({WORLD: {"train": ds.train, "methods": methods}}, ds.val, tests, seeds, recipe,
-                    workers=check_int(workers, "workers"), lr=recipe.lr, extra=oc.arm_near_misses)[WORLD]
+    found = run_arms({WORLD: {"train": ds.train, "methods": methods}}, ds.val, tests, seeds, recipe,
+                     workers=check_int(workers, "workers"), lr=recipe.lr, extra=oc.arm_near_misses, select=select)
+    if select is not None:
+        return {"arms": found}
+    arms = found[WORLD]
     gaps = {f"{p} − {a}": paired_differences(arms[p]["R@1"], paired[a]) for p in PROBES for a in (RANDOM, CLIQUES)}
     return {"arms": arms, "paired with": paired, "gaps": gaps, "batches": profile}

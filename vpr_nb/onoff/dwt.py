@@ -85,9 +85,11 @@ def premise_values(train_split, seed: int = 0) -> dict:
     return out
 
 
-def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None) -> dict:
+def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=None) -> dict:
     """The reproduce profile: every arm in both worlds, the SGD table, and the premise record
-    (``max_epochs``: a shorter run, e.g. a smoke test; None: the recipe's)."""
+    (``max_epochs``: a shorter run, e.g. a smoke test; None: the recipe's). ``select``
+    (:class:`vpr_nb.recipe.arms.Selection`): only those arms and seeds, returned as ``{"arms", "sgd"}`` (to
+    re-make one committed number)."""
     arms_recipe, sgd_recipe = RECIPE_ARMS, RECIPE_SGD
     if max_epochs is not None:
         arms_recipe = dataclasses.replace(arms_recipe, max_epochs=max_epochs)
@@ -96,11 +98,14 @@ def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None) -> dict:
     val = validation_split(VALIDATION_WORLD)
     tests = test_splits(CITY_TEST_WORLDS)
     arms = run_arms({w: {"train": train, "methods": methods(w)} for w in WORLDS}, val, tests, seeds, arms_recipe,
-                    workers=workers)
+                    workers=workers, select=select)
     sgd = {}
     for lr in SGD_LRS:
+        fixed = select if select is None else dataclasses.replace(select, lrs=None)
         sgd[f"{lr:g}"] = run_arms({"off": {"train": train, "methods": methods("off")}}, val, tests, seeds,
-                                  sgd_recipe, workers=workers, lr=lr)["off"]
+                                  sgd_recipe, workers=workers, lr=lr, select=fixed).get("off", {})
+    if select is not None:
+        return {"arms": arms, "sgd": sgd}
     values = premise_values(train)
     queries = arms["off"]["T-Loss"]["test queries"]
     record = premise_record(

@@ -220,11 +220,12 @@ def _dustbin_record(arm: dict, starts: dict, seed: int) -> dict:
                       **_rounded({MEAN: start[MEAN], AUC: start[AUC]})}}
 
 
-def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None) -> dict:
+def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=None) -> dict:
     """The reproduce profile: both arms in both worlds, the premise record and the dustbin's measurement
     (``max_epochs``: a shorter run, e.g. a smoke test; None: the recipe's). Returns ``{"arms": {world: {arm:
     run_arms' entry}}, "premise": record, "dustbin": {world: {...}}}``; each arm's ``"start R@1"`` is its own
-    (:func:`start_values`), and the Sinkhorn arm also holds the per-seed dustbin shares and :data:`AUC`."""
+    (:func:`start_values`), and the Sinkhorn arm also holds the per-seed dustbin shares and :data:`AUC`.
+    ``select`` (:class:`vpr_nb.recipe.arms.Selection`): only those arms and seeds, returned as ``{"arms"}``."""
     seeds = _check_seeds(seeds)
     workers = check_int(workers, "workers")
     recipe = RECIPE_ARMS
@@ -235,7 +236,12 @@ def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None) -> dict:
         train, val, tests = world_splits(world)
         sample = labelled_sample(tests)
         found = run_arms({world: {"train": train, "methods": methods()}}, val, tests, seeds, recipe,
-                         workers=workers, lr=recipe.lr, extra=lambda model, _tests, s=sample: dustbin_values(model, *s))[world]
+                         workers=workers, lr=recipe.lr, select=select,
+                         extra=lambda model, _tests, s=sample: dustbin_values(model, *s))
+        if select is not None:
+            arms.update(found)
+            continue
+        found = found[world]
         starts = start_values(train, tests, seeds, recipe, sample)
         for name, recalls in starts["start R@1"].items():
             found[name]["start R@1"] = recalls
@@ -243,6 +249,8 @@ def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None) -> dict:
         dustbin[world] = _dustbin_record(found[COMPARISON[0]], starts, seeds[0])
         values[world] = {**premise_values(tests), "test queries": found[COMPARISON[0]]["test queries"],
                          f"{AUC}, trained Sinkhorn (seed {seeds[0]})": dustbin[world]["trained"][AUC]}
+    if select is not None:
+        return {"arms": arms}
     a, b = COMPARISON
     record = premise_record(QUANTITY, REAL_DATA, values,
                             {f"{a} − {b}": {w: paired_differences(arms[w][a]["R@1"], arms[w][b]["R@1"])

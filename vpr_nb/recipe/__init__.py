@@ -28,7 +28,8 @@ the *method* (a loss, an aggregator, a batch sampler), so everything else is fix
   learning rate rescaled as the notebook explains), chosen on validation: the mean over the first
   ``search_seeds`` seeds of a multi-seed run, whose other seeds then train at the chosen rate only
   (:func:`lr_search`); on a split under ``min_val_queries`` queries the choice needs that many seeds.
-- **Frozen blocks computed once** (:mod:`vpr_nb.feature_cache`): one cache per search, shared by every run.
+- **Frozen blocks computed once** (:mod:`vpr_nb.feature_cache`): one cache per worker process, shared by every
+  run it computes.
 
 A notebook states only what deviates: ``dataclasses.replace(RECIPE, batch_size=4)``. In use::
 
@@ -44,8 +45,10 @@ Modules, one job each:
 - :mod:`~vpr_nb.recipe.method` :class:`Method` (a loss, an aggregator, a batch sampler) and :data:`BATCHES`;
 - :mod:`~vpr_nb.recipe.start` :func:`build_start` (the epoch-0 candidate), :func:`make_source`,
   :func:`place_batch_labels`, :class:`PlaceBatches`, :class:`TripletBatches`;
-- :mod:`~vpr_nb.recipe.search` :func:`fine_tune`, :func:`lr_search`, :func:`search_methods` (worker processes),
-  :class:`FineTuneResult`, :class:`LRSearch`;
+- :mod:`~vpr_nb.recipe.task` :class:`FineTuneTask` (one fine-tune and its key), :func:`run_task` (runs it,
+  or reuses its stored result, :mod:`vpr_nb.task_store`), :class:`FineTuneResult`;
+- :mod:`~vpr_nb.recipe.search` :func:`fine_tune`, :func:`lr_search`, :func:`search_methods` (rounds of tasks on
+  an engine, :mod:`vpr_nb.engine`), :class:`LRSearch`;
 - :mod:`~vpr_nb.recipe.arms` :func:`run_arms` (on/off experiments, paired by seed), :func:`pooled_recall` and
   :data:`CITY_TEST_WORLDS` (test sets of 1,700+ queries).
 """
@@ -53,10 +56,11 @@ from __future__ import annotations
 
 from .method import BATCHES, Method
 from .protocol import RECIPE, Recipe
-from .search import FineTuneResult, LRSearch, fine_tune, lr_search, search_methods
+from .search import LRSearch, drive, fine_tune, lr_search, search_methods, search_rounds
+from .task import FineTuneResult, FineTuneTask, run_task
 from .start import PlaceBatches, TripletBatches, build_start, make_source, place_batch_labels
 from .validation import VALIDATION_WORLD, validation_split
 
-__all__ = ["BATCHES", "RECIPE", "VALIDATION_WORLD", "FineTuneResult", "LRSearch", "Method", "PlaceBatches", "Recipe", "TripletBatches",
-           "build_start", "fine_tune", "lr_search", "make_source", "place_batch_labels", "search_methods",
-           "validation_split"]
+__all__ = ["BATCHES", "RECIPE", "VALIDATION_WORLD", "FineTuneResult", "FineTuneTask", "LRSearch", "Method",
+           "PlaceBatches", "Recipe", "TripletBatches", "build_start", "drive", "fine_tune", "lr_search", "make_source",
+           "place_batch_labels", "run_task", "search_methods", "search_rounds", "validation_split"]

@@ -11,7 +11,9 @@ the recipe, every model scored on large test sets pooled over worlds, and paired
 """
 from __future__ import annotations
 
+import fnmatch
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -108,9 +110,29 @@ def _extra_values(extra, models, tests, digits: int, taken) -> dict:
     return {k: [round(float(r[k]), digits) for r in rows] for k in rows[0]}
 
 
+@dataclass(frozen=True)
+class Selection:
+    """Some arms and seeds of an on/off experiment, to re-make one committed number: ``arms`` a shell pattern over
+    arm names (``"cliques*"``), ``seeds`` the seeds (None: all), ``lrs`` ``{world: {arm: lr}}`` the committed
+    choices, at which a searched arm's seed trains alone (the same run as in the search)."""
+
+    arms: str = "*"
+    seeds: tuple[int, ...] | None = None
+    lrs: Mapping | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.arms, str) or not self.arms:
+            raise ValueError(f"arms must be a pattern over arm names such as 'cliques*', got {self.arms!r}")
+        if self.seeds is not None:
+            object.__setattr__(self, "seeds", tuple(check_int(s, "seed", minimum=0) for s in self.seeds))
+
+    def methods(self, methods) -> list:
+        return [m for m in methods if fnmatch.fnmatchcase((m[0] if isinstance(m, tuple) else m).name, self.arms)]
+
+
 def run_arms(worlds: Mapping[str, Mapping], val_split, tests: Sequence, seeds: Sequence[int],
              recipe: Recipe = RECIPE, *, workers: int = 1, lr: float | None = None,
-             digits: int = 4, extra=None) -> dict:
+             digits: int = 4, extra=None, select: Selection | None = None) -> dict:
     """Train every arm of every world and score it: ``worlds`` = ``{world: {"train": split, "methods": [Method
     or (Method, Recipe)]}}``. Each world's methods go through :func:`search_methods` (lr searched per arm unless
     ``lr`` is given) on its own training split, selected on ``val_split``; every selected model and its start
@@ -120,18 +142,35 @@ def run_arms(worlds: Mapping[str, Mapping], val_split, tests: Sequence, seeds: S
     bool, "grid": [lrs tried], "best epoch": [...]}}}``; seeds in the order given (pair arms by position).
 
     ``extra``: a function ``(model, tests) -> {key: number}`` called on every selected model; each key is added
-    to its arm as a per-seed list (rounded to ``digits``), beside the keys above (which it may not reuse)."""
+    to its arm as a per-seed list (rounded to ``digits``), beside the keys above (which it may not reuse).
+
+    ``select`` (:class:`Selection`): only the arms and seeds it names, each at its committed lr when ``select.lrs``
+    has one; worlds without a selected arm are left out."""
     recipe = _check_recipe(recipe)
     if extra is not None and not callable(extra):
         raise ValueError(f"extra must be a function (model, tests) -> {{key: number}} or None, got {extra!r}")
     seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
+    if select is not None:
+        if not isinstance(select, Selection):
+            raise ValueError(f"select must be a vpr_nb.recipe.arms.Selection, got {type(select).__name__}")
+        unknown = sorted(set(select.seeds or ()) - set(seeds))
+        if unknown:
+            raise ValueError(f"seeds {unknown} are not among this experiment's seeds {list(seeds)}")
+        seeds = select.seeds or seeds
     if not isinstance(worlds, Mapping) or not worlds:
         raise ValueError("worlds must be a non-empty dict {world: {'train': split, 'methods': [...]}}")
     out, starts = {}, []          # starts: (weights, pooled recall) of the starts scored so far
     for world, spec in worlds.items():
         if not isinstance(spec, Mapping) or "train" not in spec or "methods" not in spec:
             raise ValueError(f"worlds[{world!r}] must be a dict with 'train' (a split) and 'methods' (a list)")
-        found = search_methods(spec["methods"], spec["train"], val_split, recipe, seeds, lr=lr, workers=workers)
+        methods, arm_lr = spec["methods"], lr
+        if select is not None:
+            methods = select.methods(methods)
+            if not methods:
+                continue
+            arm_lr = {**{(m[0] if isinstance(m, tuple) else m).name: lr for m in methods if lr is not None},
+                      **dict((select.lrs or {}).get(world, {}))}
+        found = search_methods(methods, spec["train"], val_split, recipe, seeds, lr=arm_lr, workers=workers)
         arms = {}
         for name, s in found.items():
             model_r = [pooled_recall(s.runs[seed].model, tests, recipe.ns) for seed in seeds]

@@ -1,63 +1,19 @@
-"""Fine-tuning runs of a method and the choice of its learning rate on validation, one method or many in parallel."""
+"""Fine-tuning runs of a method and the choice of its learning rate on validation, one method or many, as
+synchronous rounds of tasks (:class:`~vpr_nb.recipe.task.FineTuneTask`) on an engine (:mod:`vpr_nb.engine`)."""
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
-import multiprocessing as mp
-import tempfile
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-import torch
 
 from .._checks import check_int, check_positive
-from ..feature_cache import FrozenFeatureCache, detach
-from ..training import History, train
+from ..engine import LocalEngine, engine_from_env, timed_map
 from .method import Method, _check_method
 from .protocol import RECIPE, Recipe, _check_recipe
-from .start import build_start, make_source
-
-
-@dataclass
-class FineTuneResult:
-    """One fine-tuning run: ``model`` (the selected weights), its :class:`History`, the ``lr`` it ran at and
-    ``start``, the same model before any step (the epoch-0 candidate, for the control of
-    :func:`vpr_nb.results.gated_verdict`)."""
-
-    method: str
-    seed: int
-    lr: float
-    model: torch.nn.Module
-    history: History
-    start: torch.nn.Module
-    search: "LRSearch | None" = None
-
-    @property
-    def best_epoch(self) -> int:
-        """The selected epoch, 1-based; 0 = the starting weights won (``history.initial_won``)."""
-        return self.history.best_epoch + 1
-
-    @property
-    def epochs_run(self) -> int:
-        return len(self.history.epochs)
-
-
-def _run(method, train_split, val_split, recipe, seed, lr, cache, progress, checkpoint_dir=None,
-         stop_after=None) -> FineTuneResult:
-    """One run; with ``checkpoint_dir`` it continues the run saved there (``train``'s resume, the same weights as
-    an uninterrupted run) and ``stop_after`` epochs of this call end it early (successive halving's rung)."""
-    model = build_start(method, train_split, recipe, seed, cache)
-    start = copy.deepcopy(model)
-    detach(start.backbone)
-    try:
-        history = train(model, make_source(method, train_split, recipe), val_split, recipe.train_config(lr, seed),
-                        progress=progress, checkpoint_dir=checkpoint_dir, stop_after=stop_after)
-    finally:
-        detach(model.backbone)
-    return FineTuneResult(method.name, seed, float(lr), model, history, start)
+from .task import FineTuneResult, FineTuneTask, run_task
 
 
 def ladder_step(lr: float, up: bool) -> float:
@@ -97,7 +53,6 @@ class LRSearch:
     val_recall: dict
     runs: dict
     histories: dict
-    cache: dict | None = None
     halved: dict = dataclasses.field(default_factory=dict)
     extended: tuple[float, ...] = ()
 
@@ -123,7 +78,7 @@ class LRSearch:
 
 
 def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,), *,
-              cache: FrozenFeatureCache | None = None, progress: bool = False) -> LRSearch:
+              engine=None) -> LRSearch:
     """Fine-tune ``method`` at the lrs of :meth:`Method.lr_grid` for the first ``recipe.search_seeds`` of
     ``seeds``; choose the lr with the highest mean selected validation Recall@``ns[0]`` over them (ties: the
     smaller lr); then fine-tune the remaining seeds at the chosen lr only. Every run is seeded on its own, so
@@ -141,9 +96,18 @@ def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
 
     The choice is refused (``ValueError``) on a validation split with fewer than ``recipe.min_val_queries``
     queries unless it is made over at least ``recipe.search_seeds`` seeds: on 133 queries one query is
-    0.0075 of Recall@1, the size of the differences between grid points. The frozen blocks are computed once
-    for the whole search (``recipe.frozen_cache``; pass ``cache`` to share one between searches).
+    0.0075 of Recall@1, the size of the differences between grid points. Each training run is a task
+    (:class:`~vpr_nb.recipe.task.FineTuneTask`) on ``engine`` (default :func:`vpr_nb.engine.engine_from_env`),
+    in rounds: every task of a round runs before the next round is decided, so the choice never depends on how
+    many workers ran them. A run that halving kept trains again from its start (the same weights as one that
+    continues from the rung). Each worker process computes the frozen blocks once and keeps them.
     """
+    return drive([search_rounds(method, train_split, val_split, recipe, seeds)], engine or engine_from_env())[0]
+
+
+def search_rounds(method: Method, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,)):
+    """:func:`lr_search` as a generator of rounds: it yields a list of tasks, is sent their results in the same
+    order, and returns the :class:`LRSearch` (``StopIteration.value``); :func:`drive` runs it."""
     method, recipe = _check_method(method), _check_recipe(recipe)
     seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
     if not seeds or len(set(seeds)) != len(seeds):
@@ -156,98 +120,125 @@ def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
                          f"{recipe.min_val_queries}, too few to choose a learning rate on one seed; choose over "
                          f">= {recipe.search_seeds} seeds (seeds=(0, 1, 2, ...)), use a larger validation "
                          f"split, or fine-tune at a given lr (fine_tune(..., lr=recipe.lr))")
-    if cache is None and recipe.frozen_cache:
-        cache = FrozenFeatureCache(recipe.cache_dtype)
-    runs, halved, extended = {}, {}, []
     rung = recipe.halving_epochs if 0 < recipe.halving_epochs < recipe.max_epochs else 0
-    with tempfile.TemporaryDirectory(prefix="vpr_nb-lr-search-") as tmp:     # the runs stopped at the rung
-        def run_all(lr, stop_after=None, resumable=False):
-            return {s: _run(method, train_split, val_split, recipe, s, lr, cache, progress,
-                            Path(tmp) / f"{lr:g}-{s}" if resumable else None, stop_after) for s in chooses}
 
-        if len(grid) >= 3 and rung:
-            first = {lr: run_all(lr, rung, True) for lr in grid}
-            score = {lr: [r.history.best_recall for r in first[lr].values()] for lr in grid}
-            keep = sorted(grid, key=lambda lr: (-float(np.mean(score[lr])), lr))[:math.ceil(len(grid) / 2)]
-            for lr in grid:
-                if lr in keep:
-                    runs[lr] = run_all(lr, None, True)
-                else:
-                    runs[lr], halved[lr] = first[lr], rung
-        else:
-            runs = {lr: run_all(lr) for lr in grid}
-        val_recall = {lr: [r.history.best_recall for r in rs.values()] for lr, rs in runs.items()}
-        full = [lr for lr in runs if lr not in halved]
-        chosen = _best(val_recall, full)
-        for _ in range(recipe.lr_extend if len(grid) > 1 else 0):
-            tried = sorted(runs)
-            if tried[0] < chosen < tried[-1]:
-                break
-            new = ladder_step(chosen, up=chosen == tried[-1])
-            extended.append(new)
-            if rung:        # the rate beyond the edge trains on only if it leads the chosen one at the rung
-                runs[new] = run_all(new, rung, True)
-                if np.mean([r.history.best_recall for r in runs[new].values()]) > np.mean(
-                        [_recall_after(r.history, rung, recipe.ns[0]) for r in runs[chosen].values()]):
-                    runs[new] = run_all(new, None, True)
-                else:
-                    halved[new] = rung
+    def tasks(lrs, stop_after=None, which=chooses):
+        return [FineTuneTask(method, train_split, val_split, recipe, s, lr, stop_after) for lr in lrs for s in which]
+
+    def by_lr(lrs, results, which=chooses):
+        it = iter(results)
+        return {lr: {s: next(it) for s in which} for lr in lrs}
+
+    runs, halved, extended = {}, {}, []
+    if len(grid) >= 3 and rung:
+        first = by_lr(grid, (yield tasks(grid, rung)))
+        score = {lr: [r.history.best_recall for r in first[lr].values()] for lr in grid}
+        keep = sorted(sorted(grid, key=lambda lr: (-float(np.mean(score[lr])), lr))[:math.ceil(len(grid) / 2)])
+        runs = {**{lr: first[lr] for lr in grid if lr not in keep}, **by_lr(keep, (yield tasks(keep)))}
+        halved = {lr: rung for lr in grid if lr not in keep}
+    else:
+        runs = by_lr(grid, (yield tasks(grid)))
+    val_recall = {lr: [r.history.best_recall for r in rs.values()] for lr, rs in runs.items()}
+    full = [lr for lr in runs if lr not in halved]
+    chosen = _best(val_recall, full)
+    for _ in range(recipe.lr_extend if len(grid) > 1 else 0):
+        tried = sorted(runs)
+        if tried[0] < chosen < tried[-1]:
+            break
+        new = ladder_step(chosen, up=chosen == tried[-1])
+        extended.append(new)
+        if rung:        # the rate beyond the edge trains on only if it leads the chosen one at the rung
+            runs[new] = by_lr([new], (yield tasks([new], rung)))[new]
+            if np.mean([r.history.best_recall for r in runs[new].values()]) > np.mean(
+                    [_recall_after(r.history, rung, recipe.ns[0]) for r in runs[chosen].values()]):
+                runs[new] = by_lr([new], (yield tasks([new])))[new]
             else:
-                runs[new] = run_all(new)
-            val_recall[new] = [r.history.best_recall for r in runs[new].values()]
-            if new not in halved:
-                full.append(new)
-                chosen = _best(val_recall, full)
+                halved[new] = rung
+        else:
+            runs[new] = by_lr([new], (yield tasks([new])))[new]
+        val_recall[new] = [r.history.best_recall for r in runs[new].values()]
+        if new not in halved:
+            full.append(new)
+            chosen = _best(val_recall, full)
     histories = {lr: {s: r.history for s, r in runs[lr].items()} for lr in sorted(runs)}
     best_runs = dict(runs[chosen])
-    for s in seeds[len(chooses):]:                         # the other seeds: at the chosen lr only
-        best_runs[s] = _run(method, train_split, val_split, recipe, s, chosen, cache, progress)
-        histories[chosen][s] = best_runs[s].history
+    rest = seeds[len(chooses):]                            # the other seeds: at the chosen lr only
+    if rest:
+        best_runs.update(by_lr([chosen], (yield tasks([chosen], None, rest)), rest)[chosen])
+        for s in rest:
+            histories[chosen][s] = best_runs[s].history
     search = LRSearch(method.name, chosen, tuple(sorted(runs)), seeds, chooses, queries,
                       {lr: val_recall[lr] for lr in sorted(runs)}, {s: best_runs[s] for s in seeds}, histories,
-                      None if cache is None else cache.stats(), halved, tuple(sorted(extended)))
+                      halved, tuple(sorted(extended)))
     for r in best_runs.values():
         r.search = search
     return search
 
 
+def drive(rounds, engine=None) -> list:
+    """Run generators of task rounds (:func:`search_rounds`) together: each step gathers the next round of every
+    generator still running into one list for ``engine.map`` (default :class:`~vpr_nb.engine.LocalEngine`, one
+    worker), sends each its results, and returns what each generator returned, in order. Rounds are
+    synchronous: a generator decides its next round from its whole previous one, whatever ran where."""
+    engine = engine or LocalEngine()
+    rounds = list(rounds)
+    out: list = [None] * len(rounds)
+    pending = {}
+    for i, gen in enumerate(rounds):
+        try:
+            pending[i] = next(gen)
+        except StopIteration as stop:
+            out[i] = stop.value
+    while pending:
+        order = list(pending)
+        batch = [t for i in order for t in pending[i]]
+        results = timed_map(engine, run_task, batch)
+        pos, nxt = 0, {}
+        for i in order:
+            part, pos = results[pos:pos + len(pending[i])], pos + len(pending[i])
+            try:
+                nxt[i] = rounds[i].send(part)
+            except StopIteration as stop:
+                out[i] = stop.value
+        pending = nxt
+    return out
+
+
 def fine_tune(method: Method, train_split, val_split, recipe: Recipe = RECIPE, seed: int = 0, *,
-              lr: float | None = None, cache: FrozenFeatureCache | None = None,
-              progress: bool = False) -> FineTuneResult:
+              lr: float | None = None, engine=None) -> FineTuneResult:
     """Fine-tune ``method`` with ``recipe`` on ``train_split``, selecting on ``val_split``.
 
     ``lr=None`` chooses the learning rate on validation (:func:`lr_search` with this one seed, which needs a
     validation split of at least ``recipe.min_val_queries`` queries; to choose over seeds call
-    :func:`lr_search` and use its ``runs``); a number trains at that rate. Returns a :class:`FineTuneResult`
-    (``model``, ``history``, ``lr``, ``start``).
+    :func:`lr_search` and use its ``runs``); a number trains at that rate (one task, run in this process).
+    Returns a :class:`FineTuneResult` (``model``, ``history``, ``lr``, ``start``).
     """
     method, recipe = _check_method(method), _check_recipe(recipe)
     if lr is None:
-        return lr_search(method, train_split, val_split, recipe, (seed,), cache=cache, progress=progress).runs[seed]
-    lr = check_positive(lr, "lr")
-    seed = check_int(seed, "seed", minimum=0)
-    if cache is None and recipe.frozen_cache:
-        cache = FrozenFeatureCache(recipe.cache_dtype)
-    return _run(method, train_split, val_split, recipe, seed, lr, cache, progress)
+        return lr_search(method, train_split, val_split, recipe, (seed,), engine=engine).runs[seed]
+    return run_task(FineTuneTask(method, train_split, val_split, recipe, seed, lr))
 
 
-def _search_one(args):
-    method, train_split, val_split, recipe, seeds, lr = args
-    if lr is not None:          # a given rate: the search over a one-point grid (nothing to choose)
-        method = dataclasses.replace(method, paper_lr=None)
-        recipe = dataclasses.replace(recipe, lr_grid=(lr,))
-    return lr_search(method, train_split, val_split, recipe, seeds)
+def _fixed_lr(method: Method, recipe: Recipe, lr) -> tuple[Method, Recipe]:
+    """A given rate (a number, or ``{method name: rate}``): the search over a one-point grid (nothing to
+    choose)."""
+    if isinstance(lr, Mapping):
+        lr = lr.get(method.name)
+    if lr is None:
+        return method, recipe
+    return dataclasses.replace(method, paper_lr=None), dataclasses.replace(recipe, lr_grid=(lr,))
 
 
 def search_methods(methods, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,), *,
-                   lr: float | None = None, workers: int = 1) -> dict:
-    """:func:`lr_search` for each of ``methods`` (each with its own frozen-block cache), as
-    ``{method name: LRSearch}`` in the order given; ``lr`` given: every method trains at that rate (an
-    ``LRSearch`` with a one-point grid).
+                   lr=None, workers: int = 1, engine=None) -> dict:
+    """:func:`lr_search` for each of ``methods``, as ``{method name: LRSearch}`` in the order given; ``lr``
+    given: every method trains at that rate (an ``LRSearch`` with a one-point grid); a dict ``{method name:
+    rate}`` fixes the rate of the methods it names (e.g. a committed choice, to re-make one seed).
 
     ``methods`` may also hold ``(method, recipe)`` pairs, for a row that deviates from the recipe (e.g. SGD).
-    ``workers > 1`` runs the methods in that many processes (forked, so on Linux and macOS only); every run is
-    seeded on its own, so the results do not depend on ``workers``."""
+    The searches advance together, round by round (:func:`drive`), on ``engine`` (default:
+    :func:`vpr_nb.engine.engine_from_env` with ``workers`` local processes); every run is seeded on its own, so
+    the results do not depend on the engine or its workers."""
     items = []
     for entry in methods:
         method, rec = entry if isinstance(entry, tuple) else (entry, recipe)
@@ -257,14 +248,10 @@ def search_methods(methods, train_split, val_split, recipe: Recipe = RECIPE, see
         raise ValueError(f"methods must be a non-empty list of methods with distinct names, got {names}")
     seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
     workers = check_int(workers, "workers", minimum=1)
-    if lr is not None:
+    if isinstance(lr, Mapping):
+        lr = {k: check_positive(v, f"lr of {k!r}") for k, v in lr.items()}
+    elif lr is not None:
         lr = check_positive(lr, "lr")
-    tasks = [(m, train_split, val_split, rec, seeds, lr) for m, rec in items]
-    if workers == 1 or len(tasks) == 1:
-        found = [_search_one(t) for t in tasks]
-    else:
-        if "fork" not in mp.get_all_start_methods():
-            raise ValueError("workers > 1 needs the 'fork' start method (Linux, macOS); use workers=1 here")
-        with ProcessPoolExecutor(min(workers, len(tasks)), mp_context=mp.get_context("fork")) as pool:
-            found = list(pool.map(_search_one, tasks))
-    return dict(zip(names, found))
+    fixed = [_fixed_lr(m, rec, lr) for m, rec in items]
+    gens = [search_rounds(m, train_split, val_split, rec, seeds) for m, rec in fixed]
+    return dict(zip(names, drive(gens, engine or engine_from_env(workers))))

@@ -1,0 +1,255 @@
+"""One task = one fine-tune: :class:`FineTuneTask`, its key, and :func:`run_task`, which runs it where an engine
+puts it and reuses a stored result only when the whole key matches.
+
+A task is a method, the recipe, the training and validation splits, a seed, a learning rate and, for successive
+halving's first rung, the epochs after which it stops. Its **key** (:meth:`FineTuneTask.key_parts`) holds:
+
+- the method as data (:meth:`Method.to_dict`) and a digest of its pickled loss and batch source (a sampler's
+  settings and images), the recipe's every field, the seed, the lr and the rung;
+- a content digest of each split (:func:`split_digest`: every array's bytes, every setting; an on-disk image
+  set by its file names, sizes and modification times);
+- how the kernels run (pinned or native, and the processor when native), the Python, torch, numpy, scipy and
+  faiss versions;
+- the package's source: a digest of every file under ``vpr_nb/`` (its ``.py`` modules and its weights,
+  :func:`package_digest`). Any change to the package re-runs every task; a notebook's text changes nothing.
+
+Where it could still miss a change (documented in docs/reproduction.md): code outside the package that a
+task calls by name (a function defined in a notebook and passed as a method's batch source pickles as its
+name, not its body), libraries other than those named, and files on disk rewritten with the same size and
+time. A user notices through ``make reproduce``'s comparison with the committed numbers, or by running with
+the store switched off (``STORE=off``), which gives the same bits when nothing was missed.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import os
+import pickle
+import platform
+import sys
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .._checks import check_int, check_positive
+from ..engine import require_kernels
+from ..feature_cache import FrozenFeatureCache, detach
+from ..kernels import cpu_description, is_pinned
+from ..task_store import key_digest, store_from_env
+from ..training import History, train
+from .method import Method, _check_method
+from .protocol import Recipe, _check_recipe
+from .start import build_start, make_source
+
+KEY_FORMAT = 1
+PACKAGE_DIR = Path(__file__).resolve().parent.parent
+
+
+def package_digest(root=None) -> str:
+    """SHA-256 over every file of the package folder ``root`` (default: this installed package; relative path
+    and bytes, caches skipped): the code a task runs. The installed package's is read once per process (a
+    kernel runs the code it imported until it restarts)."""
+    if root is None:
+        return _installed_digest()
+    root = Path(root)
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and "__pycache__" not in path.parts and path.suffix not in (".pyc", ".tmp"):
+            h.update(path.relative_to(root).as_posix().encode() + b"\0")
+            h.update(path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+@lru_cache(maxsize=1)
+def _installed_digest() -> str:
+    return package_digest(PACKAGE_DIR)
+
+
+def _value_digest(h, value) -> None:
+    if isinstance(value, np.ndarray):
+        arr = np.ascontiguousarray(value)
+        h.update(f"array {arr.dtype.str} {arr.shape}".encode())
+        h.update(arr.tobytes())
+    elif isinstance(value, torch.Tensor):
+        _value_digest(h, value.detach().cpu().numpy())
+    elif isinstance(value, (list, tuple)):
+        h.update(f"seq {len(value)}".encode())
+        for v in value:
+            _value_digest(h, v)
+    elif isinstance(value, dict):
+        h.update(f"dict {len(value)}".encode())
+        for k in sorted(value, key=str):
+            h.update(repr(k).encode())
+            _value_digest(h, value[k])
+    elif hasattr(value, "paths") and hasattr(value, "size"):          # an on-disk image set (ImageArray)
+        h.update(f"files {value.size}".encode())
+        for p in value.paths:
+            st = os.stat(p)
+            h.update(f"{p} {st.st_size} {st.st_mtime_ns}".encode())
+    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+        h.update(type(value).__qualname__.encode())
+        for f in dataclasses.fields(value):
+            h.update(f.name.encode())
+            _value_digest(h, getattr(value, f.name))
+    else:
+        h.update(repr(value).encode())
+
+
+def split_digest(split) -> str:
+    """A content digest of a split: every field (arrays by their bytes), and the class-level settings a split
+    type carries (``recall_convention``, regions, paths)."""
+    h = hashlib.sha256(type(split).__qualname__.encode())
+    names = [f.name for f in dataclasses.fields(split)] if dataclasses.is_dataclass(split) else sorted(vars(split))
+    for name in sorted(set(names) | {"recall_convention", "db_region", "q_region", "db_paths", "q_paths"}):
+        h.update(name.encode())
+        _value_digest(h, getattr(split, name, None))
+    return h.hexdigest()
+
+
+def _object_digest(obj) -> str | None:
+    """A digest of a loss or batch-source object by its pickled bytes (its settings and arrays; functions by
+    their qualified name), or None when there is none."""
+    if obj is None or isinstance(obj, str):
+        return None
+    return hashlib.sha256(pickle.dumps(obj, protocol=4)).hexdigest()
+
+
+def runtime_parts() -> dict:
+    """How this process computes: kernels, library versions (part of every task key)."""
+    try:
+        import faiss
+        faiss_version = getattr(faiss, "__version__", "unknown")
+    except ImportError:
+        faiss_version = None
+    import scipy
+    pinned = is_pinned()
+    return {"pinned": pinned, "machine": platform.machine(), "cpu": None if pinned else cpu_description(),
+            "python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
+            "scipy": scipy.__version__, "faiss": faiss_version}
+
+
+@dataclass(eq=False)
+class FineTuneTask:
+    """One fine-tune: ``method`` trained with ``recipe`` on ``train`` at ``lr`` from ``seed``, selected on ``val``;
+    ``stop_after`` epochs end it early (successive halving's rung; None: the whole run)."""
+
+    method: Method
+    train: object
+    val: object
+    recipe: Recipe
+    seed: int
+    lr: float
+    stop_after: int | None = None
+    pinned: bool = dataclasses.field(default_factory=is_pinned)
+
+    def __post_init__(self):
+        self.method, self.recipe = _check_method(self.method), _check_recipe(self.recipe)
+        self.seed = check_int(self.seed, "seed", minimum=0)
+        self.lr = float(check_positive(self.lr, "lr"))
+        if self.stop_after is not None:
+            self.stop_after = check_int(self.stop_after, "stop_after")
+        self._key = None
+
+    def key_parts(self) -> dict:
+        """Everything the result depends on, as plain data (see the module docstring)."""
+        return {"format": KEY_FORMAT, "task": "fine-tune",
+                "method": self.method.to_dict(), "loss": _object_digest(self.method.loss),
+                "batches": _object_digest(self.method.batches),
+                "recipe": dataclasses.asdict(self.recipe), "seed": self.seed, "lr": self.lr,
+                "stop_after": self.stop_after, "train": split_digest(self.train), "val": split_digest(self.val),
+                "runtime": {**runtime_parts(), "pinned": self.pinned}, "package": package_digest()}
+
+    def key(self) -> str:
+        if self._key is None:
+            self._key = key_digest(self.key_parts())
+        return self._key
+
+    def label(self) -> str:
+        rung = "" if self.stop_after is None else f", first {self.stop_after} epochs"
+        return f"{self.method.name}, seed {self.seed}, lr {self.lr:g}{rung}"
+
+
+@dataclass
+class FineTuneResult:
+    """One fine-tuning run: ``model`` (the selected weights), its :class:`History`, the ``lr`` it ran at and
+    ``start``, the same model before any step (the epoch-0 candidate, for the control of
+    :func:`vpr_nb.results.gated_verdict`); ``seconds`` the task took where it ran and whether it came from the
+    task store (``reused``)."""
+
+    method: str
+    seed: int
+    lr: float
+    model: torch.nn.Module
+    history: History
+    start: torch.nn.Module
+    search: object = None
+    seconds: float = 0.0
+    reused: bool = False
+
+    @property
+    def best_epoch(self) -> int:
+        """The selected epoch, 1-based; 0 = the starting weights won (``history.initial_won``)."""
+        return self.history.best_epoch + 1
+
+    @property
+    def epochs_run(self) -> int:
+        return len(self.history.epochs)
+
+
+_CACHES: dict[str, FrozenFeatureCache] = {}
+
+
+def _cache(recipe: Recipe) -> FrozenFeatureCache | None:
+    """This process's frozen-block cache (one per storage type, bounded; keyed inside by images and frozen
+    weights, so tasks of any world share it safely)."""
+    if not recipe.frozen_cache:
+        return None
+    return _CACHES.setdefault(recipe.cache_dtype, FrozenFeatureCache(recipe.cache_dtype))
+
+
+def _state_digest(model) -> str:
+    h = hashlib.sha256()
+    for k, v in model.state_dict().items():
+        h.update(k.encode())
+        _value_digest(h, v)
+    return h.hexdigest()
+
+
+def run_task(task: FineTuneTask, *, progress: bool = False) -> FineTuneResult:
+    """Run ``task`` here: from the task store (``$VPR_NB_TASK_STORE``) when it holds this key and the start this
+    process builds is the one stored, else by training; a trained result is stored. Refuses to run a task
+    submitted with pinned kernels in an unpinned process (:func:`vpr_nb.engine.require_kernels`)."""
+    if not isinstance(task, FineTuneTask):
+        raise ValueError(f"task must be a FineTuneTask, got {type(task).__name__}")
+    require_kernels(task.pinned)
+    t0 = time.perf_counter()
+    store = store_from_env()
+    cache = _cache(task.recipe)
+    model = build_start(task.method, task.train, task.recipe, task.seed, cache)
+    start = copy.deepcopy(model)
+    detach(start.backbone)
+    start_digest = _state_digest(start)
+    entry = store.get(task.key()) if store is not None else None
+    if entry is not None and entry[1].get("start") == start_digest:
+        tensors, data = entry
+        detach(model.backbone)
+        model.load_state_dict(tensors)
+        return FineTuneResult(task.method.name, task.seed, task.lr, model, History.from_dict(data["history"]),
+                              start, seconds=float(data["seconds"]), reused=True)
+    try:
+        history = train(model, make_source(task.method, task.train, task.recipe), task.val,
+                        task.recipe.train_config(task.lr, task.seed), progress=progress,
+                        stop_after=task.stop_after)
+    finally:
+        detach(model.backbone)
+    seconds = time.perf_counter() - t0
+    if store is not None:
+        store.put(task.key(), model.state_dict(), {"history": history.to_dict(), "start": start_digest,
+                                                   "seconds": round(seconds, 3), "label": task.label(),
+                                                   "python": sys.version.split()[0]})
+    return FineTuneResult(task.method.name, task.seed, task.lr, model, history, start, seconds=seconds)

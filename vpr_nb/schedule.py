@@ -1,0 +1,129 @@
+"""How long a run would take on more workers, simulated from the times it recorded.
+
+A notebook of a run is a sequence of **phases**: stretches of its own code (one worker, in order) and rounds of
+tasks (:func:`vpr_nb.engine.log_round`), whose tasks may run on any free workers but whose next phase waits for
+the whole round (the rounds are synchronous). :func:`notebook_phases` builds a notebook's phases from its start,
+its wall time and its rounds; :func:`simulate` plays every notebook's phases at once on ``workers`` workers,
+a free worker always taking the longest job that is ready (longest-processing-time list scheduling), and returns
+the wall time. It ignores what sharing a machine costs (memory, caches), so it is a lower bound of what a real
+cluster of that size gives.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Mapping, Sequence
+
+
+def notebook_phases(start: float, seconds: float, rounds: Sequence[Mapping]) -> list:
+    """The phases of one notebook that started at ``start`` (epoch seconds) and took ``seconds``, with
+    ``rounds`` its logged rounds (``t0``, ``t1``, ``seconds`` per task): ``("code", s)`` for the time between
+    rounds, ``("round", [s, ...])`` for a round."""
+    if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"seconds must be a finite number >= 0, got {seconds!r}")
+    phases, now = [], float(start)
+    for r in sorted(rounds, key=lambda r: r["t0"]):
+        if r["t0"] > now:
+            phases.append(("code", r["t0"] - now))
+        phases.append(("round", [float(x) for x in r["seconds"]]))
+        now = max(now, float(r["t1"]))
+    end = float(start) + float(seconds)
+    if end > now:
+        phases.append(("code", end - now))
+    return phases
+
+
+def simulate(notebooks: Sequence[Sequence], workers: int) -> float:
+    """The wall time of running ``notebooks`` (each a list of phases, :func:`notebook_phases`) at once on
+    ``workers`` workers, by longest-first list scheduling with a barrier after each phase."""
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
+    phase_of = [0] * len(notebooks)
+    left = [0] * len(notebooks)           # jobs of the current phase still running or waiting
+    ready: list = []                      # (-seconds, notebook, k)
+    running: list = []                    # (end time, notebook)
+    now, free = 0.0, workers
+
+    def release(nb: int) -> None:
+        while phase_of[nb] < len(notebooks[nb]):
+            kind, value = notebooks[nb][phase_of[nb]]
+            jobs = [float(value)] if kind == "code" else [float(x) for x in value]
+            if jobs:
+                left[nb] = len(jobs)
+                for k, s in enumerate(jobs):
+                    heapq.heappush(ready, (-s, nb, k))
+                return
+            phase_of[nb] += 1             # an empty round: nothing to wait for
+
+    for nb in range(len(notebooks)):
+        release(nb)
+    while ready or running:
+        while free and ready:
+            s, nb, _ = heapq.heappop(ready)
+            heapq.heappush(running, (now - s, nb))
+            free -= 1
+        now, nb = heapq.heappop(running)
+        free += 1
+        left[nb] -= 1
+        if left[nb] == 0:
+            phase_of[nb] += 1
+            release(nb)
+    return now
+
+
+def scaling_table(notebooks: Sequence[Sequence], workers=(2, 8, 16, 64)) -> dict:
+    """``{workers: simulated minutes}`` for each worker count (rounded to 0.1 min)."""
+    return {int(w): round(simulate(notebooks, int(w)) / 60, 1) for w in workers}
+
+
+def read_rounds(path) -> list[dict]:
+    """The rounds a notebook logged (``$VPR_NB_TASK_TIMES``), skipping a line that is not a whole round (a kernel
+    killed mid-write)."""
+    import json
+    from pathlib import Path
+
+    rounds = []
+    path = Path(path)
+    if not path.is_file():
+        return rounds
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            r = json.loads(line)
+            if isinstance(r, dict) and all(k in r for k in ("t0", "t1", "seconds", "reused")):
+                rounds.append(r)
+        except json.JSONDecodeError:
+            continue
+    return rounds
+
+
+def run_summary(notebooks: Sequence[Mapping], rounds: Mapping[str, list], wall: float, cpu: float,
+                cores: int, workers=(2, 8, 16, 64)) -> dict:
+    """What a run's report says of its tasks: per notebook its tasks, how many were reused and their longest;
+    the run's CPU time against ``wall`` × ``cores`` (the idle share); and the simulated wall time on each of
+    ``workers`` (:func:`scaling_table`), from each notebook's ``started`` and ``seconds`` and its ``rounds``."""
+    per, phases = {}, []
+    for nb in notebooks:
+        rs = rounds.get(nb["name"], [])
+        times = [s for r in rs for s in r["seconds"]]
+        per[nb["name"]] = {"tasks": len(times), "reused": sum(sum(r["reused"]) for r in rs),
+                           "task minutes": round(sum(times) / 60, 1),
+                           "longest task (min)": round(max(times, default=0.0) / 60, 2),
+                           "wall minutes": round(nb["seconds"] / 60, 1)}
+        phases.append(notebook_phases(nb.get("started", 0.0), nb["seconds"], rs))
+    idle = 1.0 - cpu / (wall * cores) if wall > 0 and cores > 0 else 0.0
+    return {"notebooks": per, "wall minutes": round(wall / 60, 1), "cpu minutes": round(cpu / 60, 1),
+            "cores": cores, "idle share": round(max(idle, 0.0), 3),
+            "simulated minutes": scaling_table(phases, workers) if phases else {}}
+
+
+def summary_markdown(summary: Mapping) -> list[str]:
+    """The report's section on the run's tasks (its lines)."""
+    lines = ["", "## Tasks, idle share and simulated scaling", "",
+             f"- wall {summary['wall minutes']} min, CPU {summary['cpu minutes']} min on {summary['cores']} cores: "
+             f"idle share {summary['idle share']:.3f}",
+             "- simulated wall time (min) by workers: "
+             + ", ".join(f"{w}: {m}" for w, m in summary["simulated minutes"].items()), "",
+             "| notebook | wall (min) | tasks | reused | task time (min) | longest task (min) |", "|---|---|---|---|---|---|"]
+    lines += [f"| {name} | {v['wall minutes']} | {v['tasks']} | {v['reused']} | {v['task minutes']} | "
+              f"{v['longest task (min)']} |" for name, v in summary["notebooks"].items()]
+    return lines
