@@ -47,12 +47,12 @@ def clique_batches(utm, groups, group_descriptors, places_per_batch: int, images
     Remaining differences from the original code:
 
     * which clique: the original takes the first maximal clique of ``networkx.find_cliques``
-      (DFS order); here it is the maximal clique grown greedily (smallest index first) from the
-      smallest-index alive image that lies in a clique of ``>= images_per_place`` images. So a batch
-      fills from the lowest-index groups among those drawn: where indices follow the
-      geography (a route numbered along its track) the places crowd at its start and lie as close as
-      the threshold allows (notebook 07's route: 0.94 of them in its first quarter,
-      :mod:`vpr_nb.onoff.clique_probes`); shuffle the images to spread them;
+      (DFS order, over the pool in MSLS row order); here the drawn groups are scanned in a seeded
+      random order, each group's images by index, and a place is the maximal clique grown greedily
+      (earliest in that order first) from the first alive image that lies in a clique of
+      ``>= images_per_place`` images. Scanning the whole pool by index instead filled a batch from the
+      lowest-index groups drawn: on a route numbered along its track, 0.94 of the places sat in its
+      first quarter (notebook 07 before this order);
     * ``regions=None`` means one region (the whole data set, as one MSLS city); once every region
       was used in a batch, regions may repeat (the original would stop); images within the
       threshold of places of the anchor's region already in the batch are removed before each new

@@ -341,7 +341,8 @@ class _CliqueMiner:
         """Up to ``need`` places (arrays of ``m`` image indices) from the images in ``pool``.
 
         Images closer than the threshold to a ``blocked`` position (images already in the batch)
-        are removed first. Then, scanning the pool in ascending image index, the first alive image
+        are removed first. Then, scanning the pool in its order (:meth:`batch`: the drawn groups in a
+        seeded random order, each group's images by index), the first alive image
         that belongs to a clique of >= m alive images gives a place: that clique is grown greedily
         to a maximal clique, m random members are taken, and they and all their geographic
         neighbours (any heading) are removed. An image that is in no such clique now never will be
@@ -407,7 +408,10 @@ class _CliqueMiner:
             lo, hi = int(self.rstarts[self.rlist[r]]), int(self.rstarts[self.rlist[r] + 1])
             anchor = lo + int(rng.integers(hi - lo))
             groups = self.similar_groups(anchor, rng, lo, hi)
-            pool = np.sort(np.concatenate([self.order[self.starts[g]:self.starts[g + 1]] for g in groups]))
+            # the search scans the drawn groups in a seeded random order, each group's images in index order:
+            # scanning all of them by index would fill batches from the lowest-index groups (a route's start)
+            groups = groups[rng.permutation(len(groups))]
+            pool = np.concatenate([np.sort(self.order[self.starts[g]:self.starts[g + 1]]) for g in groups])
             near = [p for p, pr in zip(places, place_region) if pr == r]   # other regions: other UTM frames
             blocked = self.utm[np.concatenate(near)] if near else np.empty((0, 2))
             new = self.places_in_pool(pool, blocked, self.places - len(places), rng)
