@@ -52,12 +52,13 @@ from vpr_nb.losses import (CETripletLoss, DWTripletLoss, TripletLoss, WeightedTr
 from vpr_nb.mining import mine_triplets
 from vpr_nb.onoff import dwt as onoff_dwt
 from vpr_nb.premise import dwt as premise_dwt
-from vpr_nb.premise.record import gap as paired_gap, gap_text, paired_differences, verdict_lines
+from vpr_nb.premise.record import verdict_lines
 from vpr_nb.pretrain import card, course_backbone
 from vpr_nb.recipe import RECIPE, VALIDATION_WORLD, Method, build_start, search_methods, validation_split
 from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import mean_pairwise_cosine
+from vpr_nb.verdict import control_gate, family_note, gap as paired_gap, paired_differences, verdicts
 from vpr_nb.widgets import distance_weight_curve, distance_weight_explorer
 
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
@@ -548,9 +549,10 @@ plt.show()
 # %% [markdown]
 # ### Verdicts: paired differences over seeds, behind a working control
 #
-# Each line gives the mean paired per-seed difference of test R@1 and its standard error; a row "is better"
-# only beyond 2 SE. A comparison counts only when its baseline beats **its own starting weights** by more
-# than 2 SE (`vpr_nb.results.gated_verdict`). Controls first, then comparisons.
+# Each line gives the mean paired per-seed difference of test R@1, its standard error and a paired t test.
+# "Helps" or "hurts" only when Holm's p over the table is below 0.05 (`vpr_nb.verdict`). A comparison counts
+# only when its baseline beats **its own starting weights** (a one-sided t test at 5 %). Controls first, then
+# comparisons.
 
 # %%
 def r1(name):
@@ -562,17 +564,20 @@ def start_r1(name):
 
 
 for m in TABLE2 + TABLE3 + SGD_ROWS:
-    print("control:", results.control_gate(r1(m.name), start_r1(m.name), m.name, "its start")[1])
+    print("control:", control_gate(r1(m.name), start_r1(m.name), m.name, "its start").text())
 gem = res["references"]["frozen + gem"]["R@1"]
 print("and against the frozen backbone + GeM (the best aggregator without any training):",
-      results.control_gate(r1("T-Loss"), gem, "T-Loss", "frozen + GeM")[1])
+      control_gate(r1("T-Loss"), gem, "T-Loss", "frozen + GeM").text())
 print()
 PAIRS = [("W-T-Loss", "T-Loss"), ("CE-Loss", "T-Loss"), ("DW-T-Loss", "T-Loss"), ("DW-T-Loss", "CE-Loss"),
          ("Max-W", "Max"), ("Mean-W", "Mean"), ("Max", "Mean"), ("T-Loss", "Max"),
          ("W-T-Loss, SGD", "T-Loss, SGD"), ("T-Loss", "T-Loss, SGD")]
-verdicts = {f"{a} vs {b}": results.gated_verdict(r1(a), r1(b), start_r1(b), a, b, f"{b}'s start") for a, b in PAIRS}
-for text in verdicts.values():
+family = verdicts({f"{a} − {b}": paired_differences(r1(a), r1(b)) for a, b in PAIRS},
+                  gates={f"{a} − {b}": control_gate(r1(b), start_r1(b), b, f"{b}'s start") for a, b in PAIRS})
+verdict_text = {f"{a} vs {b}": f"{a} − {b}: {family[f'{a} − {b}'].text()}" for a, b in PAIRS}
+for text in verdict_text.values():
     print(text)
+print(family_note(family))
 
 # %%
 record("03_distance_ranking_weighted_loss", {
@@ -582,7 +587,7 @@ record("03_distance_ranking_weighted_loss", {
     "Table II + III analog, reproduce profile (test R@1, mean ± std)": {nm: ms(r["R@1"]) for nm, r in res["rows"].items()},
     "chosen lr": {nm: r["lr"] for nm, r in res["rows"].items()},
     "CI live (test R@1)": {nm: r["R@1"][0] for nm, r in live.items()},
-    "verdicts": verdicts,
+    "verdicts": verdict_text,
 })
 
 # %% [markdown]
@@ -651,8 +656,8 @@ for world in ("on", "off"):
     print(f"{world + ' R@1':10}" + "".join(f"{ms(arms[n]['R@1']):>22}" for n in ARM_NAMES))
     print(f"{'  lr':10}" + "".join(f"{arms[n]['lr']:>16g} {'in' if arms[n]['lr interior'] else 'edge':>5}"
                                     for n in ARM_NAMES))
-    print(f"premise {world}: CV of w {PREM['worlds'][world]['value']:.3f}; control: " + results.control_gate(
-        arms["T-Loss"]["R@1"], arms["T-Loss"]["start R@1"], "T-Loss", "its start")[1])
+    print(f"premise {world}: CV of w {PREM['worlds'][world]['value']:.3f}; control: " + control_gate(
+        arms["T-Loss"]["R@1"], arms["T-Loss"]["start R@1"], "T-Loss", "its start").text())
 print()
 for line in verdict_lines(PREM):
     print(line)
@@ -660,12 +665,16 @@ for line in verdict_lines(PREM):
 # %%
 # NBVAL_TOLERANCE=0.02
 print("The paper's protocol: SGD (momentum 0.9), one learning rate for every loss, premise off; test R@1")
+SGD_PAIRS = (("DW-T-Loss", "T-Loss"), ("DW-T-Loss", "placebo"))
+sgd_family = verdicts({f"lr {lr}: {a} − {b}": paired_differences(arms[a]["R@1"], arms[b]["R@1"])
+                       for lr, arms in pres["sgd"].items() for a, b in SGD_PAIRS})
 for lr, arms in pres["sgd"].items():
     print(f"lr {lr:>6}: " + ", ".join(f"{n} {ms(arms[n]['R@1'])}" for n in ARM_NAMES))
-    print("          control: " + results.control_gate(arms["T-Loss"]["R@1"], arms["T-Loss"]["start R@1"],
-                                                       "T-Loss", "its start")[1])
-    for a, b in (("DW-T-Loss", "T-Loss"), ("DW-T-Loss", "placebo")):
-        print(f"          {a} − {b}: {gap_text(paired_differences(arms[a]['R@1'], arms[b]['R@1']))}")
+    print("          control: " + control_gate(arms["T-Loss"]["R@1"], arms["T-Loss"]["start R@1"],
+                                               "T-Loss", "its start").text())
+    for a, b in SGD_PAIRS:
+        print(f"          {a} − {b}: {sgd_family[f'lr {lr}: {a} − {b}'].text()}")
+print(family_note(sgd_family))
 
 # %%
 names = list(PREM["comparisons"])
@@ -685,13 +694,13 @@ plt.show()
 
 # %% [markdown]
 # **Figure 7.** Paired gaps in test R@1 (mean over 5 seeds, bars ± 2 SE) with the premise on (green) and off
-# (grey). A bar clear of zero by its error bar is a verdict.
+# (grey). The verdicts are the printed t tests, not the bars.
 
 # %% [markdown]
 # **Reading the premise.** Random positives within 15 m spread the weight (CV 0.96 against 0.026), and a far
 # positive is a worse one here (Spearman 0.68). Yet, with each arm's learning rate searched:
 #
-# * *DW-T-Loss − T-Loss, premise on*: hurts.
+# * *DW-T-Loss − T-Loss, premise on*: no measurable effect, though its mean is below zero.
 # * *DW-T-Loss − placebo, premise on*: no measurable effect.
 # * *DW-T-Loss − T-Loss, premise off*: no measurable effect, as every comparison there.
 #
@@ -834,11 +843,11 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 # * **Under SGD at one learning rate, the factor is what trains.** W-T − T = +0.022 ± 0.005 at the paper's
 #   lr. In the premise experiment the placebo, with the same weights shuffled, gains as much as DW-T-Loss.
 # * **Under Adam the plain triplet loss leads.** Mean R@1: T 0.862, W-T 0.842, CE 0.840, DW-T 0.842 (paper
-#   0.812, 0.811, 0.797, 0.826). DW-T-Loss ends below T-Loss (−0.020 ± 0.009); CE − T is within 2 SE.
+#   0.812, 0.811, 0.797, 0.826). DW-T − T (−0.020 ± 0.009) and CE − T: no measurable effect.
 # * **Where Eq. (4) can rank, it does not help here.** Random positives spread the weight (CV 0.96, not
-#   0.026), yet DW-T − T is −0.018 ± 0.009 and DW-T − placebo is within 2 SE.
-# * **Table III analog: -W does not help.** Max-W vs Max is within 2 SE; Mean-W is below Mean (−0.023 ±
-#   0.006); NetVLAD beats max pooling (+0.090 ± 0.014), as in the paper.
+#   0.026), yet DW-T − T (−0.018 ± 0.009) and DW-T − placebo show no measurable effect.
+# * **Table III analog: -W does not help.** Max-W − Max and Mean-W − Mean (−0.023 ± 0.006): no measurable
+#   effect; NetVLAD beats max pooling (+0.090 ± 0.014), as in the paper.
 
 # %% [markdown]
 # ## Self-check

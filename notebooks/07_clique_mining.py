@@ -48,13 +48,14 @@ from vpr_nb.models import build_model
 from vpr_nb.pretrain import course_backbone
 from vpr_nb.onoff import clique as onoff_clique
 from vpr_nb.onoff import clique_probes
-from vpr_nb.premise.record import gap as paired_gap, gap_text, verdict_lines
+from vpr_nb.premise.record import verdict_lines
 from vpr_nb.probes import near_duplicate_probe
 from vpr_nb.recipe import RECIPE, Method, PlaceBatches, search_methods
 from vpr_nb.report import record
 from vpr_nb.samplers import (CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBatches, batch_statistics,
                              clique_batches, random_place_batches, sample_group_descriptors)
 from vpr_nb.synthetic import make_dataset
+from vpr_nb.verdict import control_gate, family_note, gap as paired_gap, paired_differences, verdicts
 
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
 ROUTE = {"num_facade_types": 60, "colour_variation": 0.3, "frame_spacing": 2.5, "frames_per_group": 2}
@@ -485,8 +486,8 @@ for s, cols in res["per seed"].items():
 # %% [markdown]
 # ## Verdicts
 #
-# Controls first: does each arm beat its start and the gate (frozen backbone + GeM) by over 2 SE? Paired
-# differences follow only if the baseline passes; lower $p$ is better.
+# Controls first: does each arm beat its start and the gate (frozen backbone + GeM), by a one-sided paired t
+# test at 5 %? Paired differences (Holm over the table) follow only if the baseline passes; lower $p$ is better.
 
 # %%
 CLIQUE, SPARSE, RANDOM = "sparse + dense cliques", "sparse only", "sparse + dense random"
@@ -496,25 +497,27 @@ def r1(name):
 
 FROZEN_R1 = res["fixed"]["frozen backbone + GeM"]["R@1 ±1 frame"]   # the control: not fine-tuning at all
 
-def gated_metric(metric, a, b, lower_is_better=False):
-    passed, control = results.control_gate(r1(b), FROZEN_R1, b, "frozen backbone + GeM")
-    if not passed:
-        return f"{metric:>22}: inconclusive: the baseline does not improve on its starting point ({control})"
-    text = results.paired_verdict(res["per seed"][a][metric], res["per seed"][b][metric], a, b,
-                                  lower_is_better=lower_is_better)
-    return f"{metric:>22}: {text}"
+BASES = {"the paper's comparison": SPARSE, "the mining-only ablation": RANDOM}
+TESTS = {"R@1": "R@1 ±1 frame", "R@1 ±2 frames": "R@1 ±2 frames", "R@1 ±4 frames": "R@1 ±4 frames",
+         "p(5,10 m)": "p(5,10 m)", "p(0,10 m)": "p(0,10 m)", "top-5 pairs in order": "top-5 pairs in order"}
+LOWER_IS_BETTER = ("p(5,10 m)", "p(0,10 m)")
+gates = {base: control_gate(r1(base), FROZEN_R1, base, "frozen backbone + GeM") for base in BASES.values()}
+per_seed = res["per seed"]
+family = verdicts({f"{label}: {CLIQUE} − {base}": paired_differences(per_seed[CLIQUE][metric], per_seed[base][metric])
+                   for base in BASES.values() for label, metric in TESTS.items()},
+                  lower_is_better=[f"{label}: {CLIQUE} − {base}" for base in BASES.values() for label in LOWER_IS_BETTER],
+                  gates={f"{label}: {CLIQUE} − {base}": gates[base] for base in BASES.values() for label in TESTS})
 
 for name in ARMS:
-    print("control:", results.control_gate(r1(name), res["per seed"][name]["start R@1"], name, "its start")[1] + ";",
-          results.control_gate(r1(name), FROZEN_R1, name, "frozen backbone + GeM")[1])
+    print("control:", control_gate(r1(name), per_seed[name]["start R@1"], name, "its start").text() + ";",
+          control_gate(r1(name), FROZEN_R1, name, "frozen backbone + GeM").text())
 verdict = {}
-for title, base in (("the paper's comparison", SPARSE), ("the mining-only ablation", RANDOM)):
-    print(f"\n{title}: {CLIQUE} vs {base}")
-    verdict[title] = results.gated_verdict(r1(CLIQUE), r1(base), FROZEN_R1, CLIQUE, base, "frozen backbone + GeM")
-    print("  R@1:", verdict[title])
-    for metric, lower in (("R@1 ±2 frames", False), ("R@1 ±4 frames", False), ("p(5,10 m)", True),
-                          ("p(0,10 m)", True), ("top-5 pairs in order", False)):
-        print(" ", gated_metric(metric, CLIQUE, base, lower))
+for title, base in BASES.items():
+    print(f"\n{title}: {CLIQUE} − {base}")
+    for label in TESTS:
+        print(f"  {label:>20}: {family[f'{label}: {CLIQUE} − {base}'].text()}")
+    verdict[title] = f"{CLIQUE} − {base}, R@1: {family[f'R@1: {CLIQUE} − {base}'].text()}"
+print(f"\n{family_note(family)}")
 print("\npaper (Nordland, DINOv2-SALAD): GSV-Cities only 76 -> + MSLS cliques 90 R@1, +14 points (the paper's comparison)")
 
 # %%
@@ -542,7 +545,7 @@ plt.show()
 # %% [markdown]
 # **Reading the result** (reproduce profile, 5 seeds). Random dense places beat the frozen backbone + GeM
 # (+0.064 ± 0.010); cliques end level with it (−0.000 ± 0.015), sparse only below it (−0.122 ± 0.015), so the
-# paper's comparison is inconclusive. Random dense places beat cliques by about 6 R@1 points, beyond 2 SE.
+# paper's comparison is inconclusive. Random dense places beat cliques by about 6 R@1 points: cliques hurt.
 
 # %%
 record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "max epochs": RUN["max_epochs"],
@@ -581,8 +584,8 @@ for world in ("on", "off"):
         near = fail * np.mean(a["near-miss share"])
         print(f"  {name:24s} R@1 {ms(a['R@1'])}; per 100 queries {100 * near:.1f} near misses and "
               f"{100 * (fail - near):.1f} farther failures; control: "
-              f"{results.control_gate(a['R@1'], a['start R@1'], name, 'its start')[1]}")
-    print("  gate: " + results.control_gate(arms[SPARSE]["R@1"], fz["R@1"], SPARSE, "frozen backbone + GeM")[1])
+              f"{control_gate(a['R@1'], a['start R@1'], name, 'its start').text()}")
+    print("  gate: " + control_gate(arms[SPARSE]["R@1"], fz["R@1"], SPARSE, "frozen backbone + GeM").text())
 print()
 for line in verdict_lines(PREM):
     print(line)
@@ -642,8 +645,10 @@ for name, b in pp["batches"].items():
     print(f"{name:28s} {b['nearest other-place image (m)']:14.1f} m {b['images with a negative within 2.5 m']:14.3f} "
           f"{b['places in the first quarter']:11.3f} {ms(r1[name]):>15s}")
 print()
-for name, diffs in pp["gaps"].items():
-    print(f"{name}: {gap_text(diffs)}")
+probe_family = verdicts(pp["gaps"])
+for name, v in probe_family.items():
+    print(f"{name}: {v.text()}")
+print(family_note(probe_family))
 
 # %%
 names = list(pp["batches"])
@@ -672,11 +677,12 @@ plt.show()
 # within 2.5 m (orange). Right: each variant's paired gap to random dense places; grey: unchanged cliques.
 
 # %% [markdown]
-# **Reading the probes.** Every variant still loses to random dense places (*− sparse + dense random*: hurts).
+# **Reading the probes.** Every variant's mean stays below random dense places' (*− sparse + dense random*:
+# hurts for two, no measurable effect for τ 2.5 m and 4 + 4).
 #
 # * *cliques, τ 2.5 m − sparse + dense cliques*: helps (+0.021); no negative within 2.5 m (0.658 before).
-# * *cliques, random image order − sparse + dense cliques*: helps (+0.021). In index order, the search packed
-#   places 2 m apart in the route's first quarter (0.937 of them).
+# * *cliques, random image order − sparse + dense cliques*: no measurable effect (+0.021). In index order, the
+#   search packed places 2 m apart in the route's first quarter (0.937 of them).
 # * *4 cliques + 4 random − sparse + dense cliques*: helps (+0.034); half its batch is the baseline's.
 # * *cliques, Eq. (1) uniform − sparse + dense cliques*: no measurable effect from the look-alike draw.
 #

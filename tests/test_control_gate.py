@@ -1,4 +1,5 @@
-"""The control gate of vpr_nb.results: a paired verdict only over a baseline that beats its starting point."""
+"""The control gate through vpr_nb.results' one-comparison wrappers (notebooks 04 and 06): a paired verdict only over a
+baseline that beats its starting point, by the rule of vpr_nb.verdict (tests/test_verdict.py tests the rule)."""
 import math
 
 import pytest
@@ -6,37 +7,36 @@ import pytest
 from vpr_nb.results import control_gate, gated_verdict
 
 START = [0.70, 0.71, 0.70, 0.72, 0.70]                  # the epoch-0 weights, per seed
-GOOD_BASE = [0.80, 0.81, 0.79, 0.82, 0.80]              # the baseline fine-tune: +0.10, well beyond 2 SE
+GOOD_BASE = [0.80, 0.81, 0.79, 0.82, 0.80]              # the baseline fine-tune: +0.10, t 49
 
 
-def test_control_passes_when_the_baseline_beats_its_start_beyond_two_se():
+def test_control_passes_when_the_baseline_beats_its_start():
     passed, text = control_gate(GOOD_BASE, START, "T-Loss", "frozen")
-    assert passed and text.startswith("T-Loss − frozen = +0.098 ± 0.") and "(SE, 5 seeds)" in text
+    assert passed and text == "T-Loss − frozen = +0.098 ± 0.002 (5 seeds, t 49.0, one-sided p < 0.001)"
 
 
-def test_control_fails_below_or_within_two_se_and_on_one_seed():
+def test_control_fails_below_or_close_to_its_start_and_on_one_seed():
     assert not control_gate([0.69, 0.70, 0.71, 0.70, 0.70], START)[0]            # worse than the start
-    assert not control_gate([0.71, 0.70, 0.72, 0.71, 0.71], START)[0]            # +0.004 ± 0.005: within 2 SE
+    assert not control_gate([0.71, 0.70, 0.72, 0.71, 0.71], START)[0]            # +0.004 ± 0.005: one-sided p 0.2
     passed, text = control_gate([0.9], [0.7])
-    assert not passed and "one seed" in text
+    assert not passed and text.endswith("(1 seed, no spread to test)")
     assert control_gate(GOOD_BASE, 0.70)[0]                                       # one number: the same start for all
 
 
 def test_verdict_only_over_a_working_control():
-    better = [0.85, 0.86, 0.84, 0.87, 0.85]
+    better = [0.85, 0.87, 0.84, 0.88, 0.85]
     v = gated_verdict(better, GOOD_BASE, START, "DW-T", "T", "frozen")
-    assert v.startswith("DW-T − T = +0.050 ± 0.") and "DW-T is better" in v and "[control: T − frozen = +0.098" in v
-    worse = [0.75, 0.76, 0.74, 0.77, 0.75]
-    assert "T is better" in gated_verdict(worse, GOOD_BASE, START, "DW-T", "T")
+    assert v.startswith("DW-T − T = +0.054 ± 0.002 (5 seeds, t 22.0, p < 0.001): helps [control: T − frozen = +0.098")
+    worse = [0.75, 0.77, 0.74, 0.78, 0.75]
+    assert ": hurts [control:" in gated_verdict(worse, GOOD_BASE, START, "DW-T", "T")
     close = [0.80, 0.82, 0.79, 0.81, 0.80]
-    assert "within 2 SE, no verdict" in gated_verdict(close, GOOD_BASE, START, "DW-T", "T")
+    assert ": no measurable effect [control:" in gated_verdict(close, GOOD_BASE, START, "DW-T", "T")
 
 
-def test_a_failing_control_makes_the_verdict_inconclusive_with_the_numbers():
-    base = [0.66, 0.70, 0.64, 0.68, 0.62]               # the baseline ends below its start (as 03's T-Loss did)
-    v = gated_verdict([0.30, 0.31, 0.30, 0.29, 0.30], base, START, "DW-T", "T", "frozen")
-    assert v == ("DW-T vs T: inconclusive: the baseline does not improve on its starting point "
-                 "(T − frozen = -0.046 ± 0.012 (SE, 5 seeds))")
+def test_a_failing_control_makes_the_verdict_inconclusive_and_names_the_reference():
+    base = [0.66, 0.70, 0.64, 0.68, 0.62]               # the baseline ends below its start (as 03's T-Loss once did)
+    v = gated_verdict([0.30, 0.31, 0.30, 0.29, 0.30], base, START, "DW-T", "T", "frozen backbone + GeM")
+    assert v == "DW-T vs T: inconclusive: T does not beat frozen backbone + GeM (-0.046 ± 0.012, 5 seeds)"
 
 
 def test_nan_and_mismatched_seeds_are_refused():
@@ -44,9 +44,9 @@ def test_nan_and_mismatched_seeds_are_refused():
         gated_verdict(GOOD_BASE, [0.8, 0.8, math.nan, 0.8, 0.8], START, "A", "B")
     with pytest.raises(ValueError, match=r"A \(method values\), entry 0: the value is nan"):
         gated_verdict([math.nan] * 5, GOOD_BASE, START, "A", "B")
-    with pytest.raises(ValueError, match=r"starting-point values\), entry 0: the value is nan"):
+    with pytest.raises(ValueError, match=r"reference values\), entry 0: the value is nan"):
         control_gate(GOOD_BASE, float("nan"))
-    with pytest.raises(ValueError, match="one starting-point value per baseline seed"):
+    with pytest.raises(ValueError, match="one value of 'its starting point' per seed of 'baseline'"):
         control_gate(GOOD_BASE, START[:3])
     with pytest.raises(ValueError, match="same seeds"):
         gated_verdict(GOOD_BASE[:4], GOOD_BASE, START)

@@ -10,9 +10,9 @@ import pytest
 
 from vpr_nb.onoff import clique as oc
 from vpr_nb.onoff import clique_probes as cp
-from vpr_nb.premise.record import gap_text
 from vpr_nb.results import world_fingerprints
 from vpr_nb.synthetic import make_dataset
+from vpr_nb.verdict import family_note, verdicts
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "notebooks" / "results"
@@ -111,7 +111,10 @@ def test_the_stored_probes_pair_with_the_stored_premise_arms_and_the_notebook_pr
             assert probes["gaps"][f"{p} − {a}"] == pytest.approx(want, abs=1e-9)
     nb = nbformat.read(ROOT / "notebooks" / "07_clique_mining.ipynb", as_version=4)
     out = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
-    missing = [f"{name}: {gap_text(d)}" for name, d in probes["gaps"].items() if f"{name}: {gap_text(d)}" not in out]
+    # every gap's verdict, recomputed from the stored per-seed differences (one Holm family: the probes' table)
+    family = verdicts(probes["gaps"])
+    lines = [f"{name}: {v.text()}" for name, v in family.items()] + [family_note(family)]
+    missing = [line for line in lines if line not in out]
     assert not missing, f"the stored notebook does not print: {missing}"
 
 

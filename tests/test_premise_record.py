@@ -10,8 +10,9 @@ import nbformat
 import numpy as np
 import pytest
 
-from vpr_nb.premise.record import (VERDICTS, gap, gap_text, paired_differences, premise_record, record_problems,
-                                   verdict, verdict_lines)
+from vpr_nb.premise.record import (paired_differences, premise_record, premise_verdicts, record_problems,
+                                   verdict_lines)
+from vpr_nb.verdict import WORDS as VERDICTS, gap
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "notebooks" / "results"
@@ -34,27 +35,25 @@ def test_gap_is_mean_and_standard_error_of_paired_differences():
     assert paired_differences([0.9, 0.8], [0.85, 0.82]) == [0.05, -0.02]
 
 
-@pytest.mark.parametrize("diffs, word", [([0.03, 0.04, 0.02, 0.05, 0.03], "helps"),
-                                         ([-0.03, -0.04, -0.02, -0.05, -0.03], "hurts"),
-                                         ([0.01, -0.01, 0.0, 0.02, -0.02], "no measurable effect"),
-                                         ([0.05], "no measurable effect")])
-def test_verdict_follows_two_standard_errors(diffs, word):
-    assert verdict(diffs) == word
-    assert gap_text(diffs).endswith(word)
-
-
-def test_verdict_at_the_boundary():
-    # mean 0.02, SE 0.01 exactly: not beyond 2 SE
-    d = [0.02 + x for x in (-0.01 * np.sqrt(5) / np.sqrt(2), 0.01 * np.sqrt(5) / np.sqrt(2))]
-    m, se = gap(d)
-    assert verdict([m + 3 * se, m - se]) in VERDICTS
+def test_premise_verdicts_are_one_family_over_comparisons_and_worlds():
+    # each alone would "help" (t 3.7, p 0.022); Holm over the 4 comparisons of the record (2 × 2 worlds): p 0.087
+    modest, null = [0.02, 0.03, 0.0, 0.03, 0.02], [0.01, -0.01, 0.0, 0.02, -0.02]
+    rec = premise_record("q", "not found", {w: {"value": 1, "test queries": 1000} for w in ("on", "off")},
+                         {"A − B": {"on": modest, "off": null}, "C − B": {"on": null, "off": null}})
+    family = premise_verdicts(rec)
+    assert list(family) == ["A − B, premise on", "A − B, premise off", "C − B, premise on", "C − B, premise off"]
+    assert {v.family for v in family.values()} == {4}
+    assert family["A − B, premise on"].word == "no measurable effect" and family["A − B, premise on"].p < 0.05
+    assert verdict_lines(rec)[-1] == "Holm over the 4 comparisons of this table"
 
 
 def test_record_is_checked():
     rec = _record()
     assert record_problems(rec) == []
-    assert verdict_lines(rec) == ["A − B, premise on: +0.034 ± 0.005 (5 seeds): helps",
-                                  "A − B, premise off: +0.000 ± 0.007 (5 seeds): no measurable effect"]
+    assert verdict_lines(rec) == [
+        "A − B, premise on: +0.034 ± 0.005 (5 seeds, t 6.7, Holm p 0.005 over 2 comparisons): helps",
+        "A − B, premise off: +0.000 ± 0.007 (5 seeds, t 0.0, Holm p 1.000 over 2 comparisons): no measurable effect",
+        "Holm over the 2 comparisons of this table"]
     assert record_problems(_record(diffs_on=(0.1, 0.2))) == ["A − B, premise on: 2 paired seeds, fewer than 5"]
     assert "test queries" in record_problems(_record(queries=318))[0]
     with pytest.raises(ValueError, match="worlds must have exactly"):
@@ -116,27 +115,54 @@ def _stated_verdicts(text: str, names) -> list[tuple[str, str, str | None]]:
     return found
 
 
-@pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
-def test_stored_premise_records_and_their_verdicts(results_file):
+def _verdict_problems(record, outputs: str, markdown: str) -> list[str]:
+    """What the stored notebook gets wrong about ``record``: a verdict line (recomputed from the stored per-seed
+    differences by today's rule, one Holm family per record) that its outputs do not print, or a sentence of its
+    text that states another word than the recomputed one."""
+    family = premise_verdicts(record)
+    problems = [f"does not print {line!r}" for line in verdict_lines(record) if line not in outputs]
+    stated = _stated_verdicts(markdown, record["comparisons"])
+    for name, world, said in stated:
+        want = family[f"{name}, premise {world}"]
+        if said != want.word:
+            problems.append(f"the text says {name}, premise {world}: {said!r}; the stored numbers give "
+                            f"{want.word!r} ({want.text()})")
+    if not stated:
+        problems.append("the text states no premise verdict")
+    return problems
+
+
+def _stored(results_file):
     path = RESULTS / results_file
     if not path.exists():
         pytest.skip(f"{results_file} is not committed yet")
     record = json.loads(path.read_text(encoding="utf-8"))["results"]["premise"]
-    assert record_problems(record) == []
     nb = nbformat.read(ROOT / "notebooks" / PREMISE_FILES[results_file], as_version=4)
-    outputs = _outputs(nb)
-    lines = verdict_lines(record)
-    missing = [line for line in lines if line not in outputs]
-    assert not missing, f"the stored notebook does not print these verdicts of {results_file}: {missing}"
-    words = {(name, w): verdict(per[w]) for name, per in record["comparisons"].items() for w in ("on", "off")}
-    text = "\n".join(c.source for c in nb.cells if c.cell_type == "markdown")
-    stated = _stated_verdicts(text, record["comparisons"])
-    for name, world, said in stated:
-        assert said, f"the text states {name}, premise {world} without a verdict word in its line"
-        assert said == words[(name, world)], (
-            f"the text says {name}, premise {world}: {said!r}; the stored numbers give {words[(name, world)]!r} "
-            f"({gap_text(record['comparisons'][name][world])})")
-    assert stated, f"the text of {PREMISE_FILES[results_file]} states no premise verdict"
+    return record, _outputs(nb), "\n".join(c.source for c in nb.cells if c.cell_type == "markdown")
+
+
+@pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
+def test_stored_premise_records_and_their_verdicts(results_file):
+    record, outputs, markdown = _stored(results_file)
+    assert record_problems(record) == []
+    problems = _verdict_problems(record, outputs, markdown)
+    assert not problems, f"{PREMISE_FILES[results_file]} against {results_file}: {problems}"
+
+
+def test_every_premise_file_is_checked():
+    assert {p.name for p in RESULTS.glob("*_premise.json")} <= set(PREMISE_FILES)
+
+
+def test_a_flipped_word_is_caught():
+    record, outputs, markdown = _stored("07_premise.json")
+    name = next(iter(record["comparisons"]))
+    word = premise_verdicts(record)[f"{name}, premise on"].word
+    other = next(v for v in VERDICTS if v != word)
+    line = next(ln for ln in verdict_lines(record) if ln.startswith(f"{name}, premise on:"))
+    printed = outputs.replace(line, line[: -len(word)] + other)
+    assert any("does not print" in p for p in _verdict_problems(record, printed, markdown))
+    stated = markdown.replace(f"{name}, premise on*: {word}", f"{name}, premise on*: {other}")
+    assert stated != markdown and any("the text says" in p for p in _verdict_problems(record, outputs, stated))
 
 
 def test_stated_verdicts_are_read_in_text_order():

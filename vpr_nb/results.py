@@ -10,8 +10,8 @@ notebook's (a changed epoch count, lr, seed list, …), a file computed with oth
 course-backbone weights (compared by :func:`backbone_fingerprint`), and a file computed on another
 synthetic world (compared by :func:`world_fingerprints`), so nbval fails and a result can never go
 stale silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "reproduce"``) and commit.
-A verdict between two fine-tuned methods goes through :func:`gated_verdict`: only when the baseline beats
-its own starting point (:func:`control_gate`).
+Verdicts follow the course's one rule (:mod:`vpr_nb.verdict`); :func:`paired_verdict`, :func:`control_gate` and
+:func:`gated_verdict` are its one-comparison wrappers.
 
 **Keys.** A results file is keyed on three things, each checked by :func:`load`:
 
@@ -45,6 +45,7 @@ from .models import read_weights
 from .pretrain import CHECKPOINT
 from .synthetic import make_config
 from .synthetic.config import OPTIONAL_CONTENT, WorldConfig
+from . import verdict
 
 
 ALLOW_DIRTY_ENV = "VPR_NB_ALLOW_DIRTY"   # =1: a trial reproduce run may save from a dirty tree
@@ -338,64 +339,34 @@ def mean_std(values, what: str = "mean_std values") -> tuple[float, float]:
     return m, sd
 
 
+# The verdicts of notebooks 04 and 06, each comparison alone (a family of one): thin wrappers of vpr_nb.verdict, the
+# course's one rule and vocabulary. A notebook table of several comparisons calls vpr_nb.verdict.verdicts instead.
 def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None, lower_is_better: bool = False) -> str:
-    """A sentence on ``a − b`` over paired seeds: a verdict only when ``|mean|`` > 2 standard errors.
-
-    ``lower_is_better`` for metrics such as a mis-ordering probability (then a negative difference
-    makes ``a`` the better one). Every value must be a finite number: a NaN / inf raises ValueError
-    naming the method and the seed (``seeds[i]`` when given, else the position)."""
-    if len(a_vals) != len(b_vals) or not len(a_vals):
-        raise ValueError(f"paired_verdict needs the same non-zero number of seeds, got {len(a_vals)} and {len(b_vals)}")
-    seeds = None if seeds is None else list(seeds)
-    if seeds is not None and len(seeds) != len(a_vals):
-        raise ValueError(f"seeds names {len(seeds)} seeds but there are {len(a_vals)} paired values")
-    a_f, b_f = _finite_values(a_vals, f"paired_verdict: {a}", seeds), _finite_values(b_vals, f"paired_verdict: {b}", seeds)
-    diff = [x - y for x, y in zip(a_f, b_f)]
-    m, sd = mean_std(diff)
-    if len(diff) < 2:
-        return f"{a} − {b} = {m:+.3f} on one seed: no spread, no verdict"
-    se = sd / math.sqrt(len(diff))
-    if abs(m) > 2 * se:
-        return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): {a if (m > 0) != lower_is_better else b} is better"
-    return f"{a} − {b} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds): within 2 SE, no verdict"
+    """``"a − b = +0.031 ± 0.015 (5 seeds, t 2.1, p 0.105): no measurable effect"``: one comparison, a paired
+    t test alone (:func:`vpr_nb.verdict.verdict`). NaN/inf, empty or mismatched lists raise ValueError naming
+    the method and the seed (``seeds[i]`` when given, else the position)."""
+    diffs = verdict.paired_differences(a_vals, b_vals, a, b, seeds=None if seeds is None else list(seeds))
+    return f"{a} − {b} = {verdict.verdict(diffs, lower_is_better=lower_is_better).text()}"
 
 
 def control_gate(baseline_vals, start_vals, baseline: str = "baseline",
                  start: str = "its starting point") -> tuple[bool, str]:
-    """Does the baseline fine-tune beat its starting point (the epoch-0 weights) by more than 2 SE, paired
-    over seeds? Returns ``(passed, "baseline − start = x ± SE (SE, n seeds)")``.
-
-    ``start_vals`` is one value per seed, or a single number when the start is the same for every seed (a
-    frozen backbone). One seed has no spread and never passes. NaN in any value is refused."""
-    base = _finite_values(baseline_vals, f"{baseline} (baseline values)")
-    if isinstance(start_vals, (int, float)) and not isinstance(start_vals, bool):
-        start_vals = [start_vals] * len(base)
-    ref = _finite_values(start_vals, f"{start} (starting-point values)")
-    if len(base) != len(ref) or not base:
-        raise ValueError(f"control_gate needs one starting-point value per baseline seed (or one number), got "
-                         f"{len(base)} baseline and {len(ref)} starting-point values")
-    diff = [x - y for x, y in zip(base, ref)]
-    m, sd = mean_std(diff)
-    if len(diff) < 2:
-        return False, f"{baseline} − {start} = {m:+.3f} on one seed (no spread)"
-    se = sd / math.sqrt(len(diff))
-    return m > 2 * se, f"{baseline} − {start} = {m:+.3f} ± {se:.3f} (SE, {len(diff)} seeds)"
+    """``(passed, "baseline − start = x ± SE (n seeds, t, one-sided p)")`` of :func:`vpr_nb.verdict.control_gate`:
+    does ``baseline`` beat ``start`` (per-seed values, or one number for every seed) by a one-sided paired t test
+    at 5 %? The text holds the numbers only; ``passed`` says whether the gate passes."""
+    gate = verdict.control_gate(baseline_vals, start_vals, baseline, start)
+    return gate.passed, gate.numbers()
 
 
 def gated_verdict(a_vals, b_vals, start_vals, a: str = "A", b: str = "B", start: str = "its starting point") -> str:
-    """:func:`paired_verdict` of ``a`` against the baseline ``b``, printed only when the baseline's own
-    fine-tune works: ``b`` must beat its starting point ``start_vals`` by more than 2 SE (:func:`control_gate`).
-    Otherwise: "inconclusive: the baseline does not improve on its starting point (b − start = x ± SE)".
-    NaN in any per-seed value is refused (``ValueError``)."""
-    a_checked = _finite_values(a_vals, f"{a} (method values)")
-    b_checked = _finite_values(b_vals, f"{b} (baseline values)")
-    if len(a_checked) != len(b_checked):
-        raise ValueError(f"gated_verdict needs the same seeds for {a} and {b}, got {len(a_checked)} and "
-                         f"{len(b_checked)} values")
-    passed, control = control_gate(b_checked, start_vals, b, start)
-    if not passed:
-        return f"{a} vs {b}: inconclusive: the baseline does not improve on its starting point ({control})"
-    return f"{paired_verdict(a_checked, b_checked, a, b)} [control: {control}]"
+    """:func:`paired_verdict` of ``a`` against the baseline ``b`` when ``b`` passes its control gate against
+    ``start`` (:func:`vpr_nb.verdict.control_gate`), with the gate in brackets; otherwise ``"a vs b:
+    inconclusive: b does not beat <start> (...)"``."""
+    diffs = verdict.paired_differences(a_vals, b_vals, f"{a} (method values)", f"{b} (baseline values)")
+    gate = verdict.control_gate(b_vals, start_vals, b, start)
+    if not gate.passed:
+        return f"{a} vs {b}: {gate.inconclusive()}"
+    return f"{a} − {b} = {verdict.verdict(diffs).text()} [control: {gate.text()}]"
 
 
 def print_table(rows: Mapping, title: str, label_width: int = 22, col_width: int = 24) -> None:

@@ -9,20 +9,20 @@ Each premise notebook (03 DW-T-Loss, 05 SALAD, 07 CliqueMining) stores one recor
                 "off": {"value": ..., "test queries": ..., ...}},
      "comparisons": {"<method> − <baseline>": {"on": [paired per-seed differences], "off": [...]}}}
 
-A gap is the mean of paired per-seed differences ``a_seed − b_seed`` with its standard error
-``SE = sd / sqrt(n)`` (sample sd); its verdict word (:func:`verdict`) follows the numbers: **helps** when the
-mean exceeds 2 SE, **hurts** when it is below −2 SE, otherwise **no measurable effect**. The notebooks print
-:func:`gap_text` for every comparison and world, and a test checks the stored text against the stored record.
+A gap is the mean of paired per-seed differences ``a_seed − b_seed``; its verdict word is recomputed from the
+stored differences by the course's one rule (:mod:`vpr_nb.verdict`: a paired t test, Holm over the record's
+comparisons in both worlds, one family): **helps**, **hurts** or **no measurable effect**. The notebooks print
+:func:`verdict_lines`, and a test checks the stored text against the stored record.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .. import verdict as _verdict
+
 WORLDS = ("on", "off")
-VERDICTS = ("helps", "hurts", "no measurable effect")
 MIN_SEEDS = 5          # paired seeds a comparison needs in a reproduce-profile record
 MIN_TEST_QUERIES = 1000  # test queries a world needs there (one query is then at most 0.001 of R@1)
 
@@ -41,36 +41,7 @@ def _numbers(values, what: str) -> np.ndarray:
 
 def paired_differences(a_vals: Sequence[float], b_vals: Sequence[float], digits: int = 4) -> list[float]:
     """``[a_i − b_i]`` over paired seeds, rounded to ``digits`` (the record stores these)."""
-    a, b = _numbers(a_vals, "a_vals"), _numbers(b_vals, "b_vals")
-    if len(a) != len(b):
-        raise ValueError(f"paired differences need one value per seed on both sides, got {len(a)} and {len(b)}")
-    return [round(float(x), digits) for x in a - b]
-
-
-def gap(diffs: Sequence[float]) -> tuple[float, float]:
-    """Mean and standard error (sample sd / sqrt(n); 0 for one seed) of paired differences."""
-    d = _numbers(diffs, "diffs")
-    se = float(np.std(d, ddof=1) / math.sqrt(len(d))) if len(d) > 1 else 0.0
-    return float(d.mean()), se
-
-
-def verdict(diffs: Sequence[float]) -> str:
-    """``"helps"`` (mean > 2 SE), ``"hurts"`` (mean < −2 SE) or ``"no measurable effect"``; one seed or a
-    zero spread with a zero mean has no verdict beyond the last."""
-    m, se = gap(diffs)
-    if len(diffs) < 2:
-        return "no measurable effect"
-    if m > 2 * se:
-        return "helps"
-    if m < -2 * se:
-        return "hurts"
-    return "no measurable effect"
-
-
-def gap_text(diffs: Sequence[float]) -> str:
-    """``"+0.036 ± 0.009 (5 seeds): helps"``: the gap, its SE, the number of seeds and the verdict word."""
-    m, se = gap(diffs)
-    return f"{m:+.3f} ± {se:.3f} ({len(diffs)} seeds): {verdict(diffs)}"
+    return _verdict.paired_differences(a_vals, b_vals, digits=digits)
 
 
 def _check_world(name: str, world) -> dict:
@@ -124,8 +95,17 @@ def record_problems(record, min_seeds: int = MIN_SEEDS, min_test_queries: int = 
     return problems
 
 
-def verdict_lines(record: Mapping) -> list[str]:
-    """One line per comparison and world, ``"DW-T − T-Loss, premise on: +0.036 ± 0.009 (5 seeds): helps"``,
-    as the notebooks print them (and the consistency test reads them back)."""
+def premise_verdicts(record: Mapping) -> dict[str, _verdict.Verdict]:
+    """``{"<comparison>, premise <world>": Verdict}`` for every comparison and world of ``record``: one family,
+    Holm-corrected over all of them (:func:`vpr_nb.verdict.verdicts`)."""
     rec = premise_record(record["quantity"], record["real data"], record["worlds"], record["comparisons"])
-    return [f"{name}, premise {w}: {gap_text(per[w])}" for name, per in rec["comparisons"].items() for w in WORLDS]
+    return _verdict.verdicts({f"{name}, premise {w}": per[w] for name, per in rec["comparisons"].items()
+                              for w in WORLDS})
+
+
+def verdict_lines(record: Mapping) -> list[str]:
+    """One line per comparison and world, as the notebooks print them (and the consistency test reads them
+    back): ``"DW-T − T-Loss, premise on: +0.036 ± 0.009 (5 seeds, t 4.1, Holm p 0.030 over 4 comparisons):
+    helps"``, then the line naming the family (:func:`vpr_nb.verdict.family_note`)."""
+    family = premise_verdicts(record)
+    return [f"{name}: {v.text()}" for name, v in family.items()] + [_verdict.family_note(family)]
