@@ -34,9 +34,10 @@ claims B > A (rise) or B < A (fall). (b) A comparative (``higher``, ``larger``, 
 ``better``, ``beats``, ``worse`` are reversed for quantities where lower is better (``p(...)``, ``loss``). The
 numbers are also checked by rule 1 when the clause names their quantity.
 
-**Rule 3, verdicts.** The notebook prints verdicts as ``A − B = m ± s (SE, n seeds): A is better`` (or ``within
-2 SE, no verdict``), ``A − B, premise on: m ± s: helps`` (``hurts``, ``no measurable effect``), ``A vs B:
-inconclusive: ...`` and ``control: A − B = ...: passes`` (``fails``). Each gives a winner (A, B or none). A
+**Rule 3, verdicts.** The notebook prints verdicts (:mod:`vpr_nb.verdict`) as ``A − B: m ± s (n seeds, t .., Holm
+p .. over k comparisons): helps`` (``hurts``, ``no measurable effect``), ``A − B, premise on: ...: helps``, ``A − B:
+inconclusive: ...`` and ``control: A − B = ...: passes`` (``fails``); older notebooks' ``A is better`` / ``within
+2 SE, no verdict`` / ``A vs B: inconclusive`` are read too. Each gives a winner (A, B or none). A
 sentence claims one with (a) the printed form ``A − B[, premise on|off]: helps`` (``hurts``, ``no measurable
 effect``, ``within 2 SE``, ``inconclusive``, ``X is better``), or (b) two printed names with a verb between
 them: ``A beats B``, ``A is better than B``, ``A outperforms B``, ``A is above B`` (A wins), ``A trails B``,
@@ -195,7 +196,7 @@ def backing(nb: dict, number: str | None, results_dir: Path | None = RESULTS) ->
 
 _PRINTED = re.compile(r"^\s*(?:(?P<metric>[^:−=\[]+?):\s+)?(?P<a>[^:−=\[]+?) − (?P<b>[^:=\[]+?)"
                       r"(?:, (?P<cond>premise (?:on|off)))?\s*(?:=|:)\s*[-+−]?\d[^:]*:\s*(?P<verdict>[^\[]+?)\s*(?:\[.*)?$")
-_PRINTED_INCONCLUSIVE = re.compile(r"^\s*(?:(?P<metric>[^:]+?):\s+)?(?P<a>[^:]+?) vs (?P<b>[^:]+?): inconclusive")
+_PRINTED_INCONCLUSIVE = re.compile(r"^\s*(?:(?P<metric>[^:]+?):\s+)?(?P<a>[^:]+?) (?:vs|−) (?P<b>[^:]+?): inconclusive")
 
 
 @dataclass(frozen=True)

@@ -66,10 +66,12 @@ def test_each_probe_changes_its_one_thing(dense):
     # the mix: its first 4 places are cliques, its last 4 random route places
     mix = batches["4 cliques + 4 random"]
     assert cp.batch_profile(mix[:, :4], route["utm"], radius)["place pairs beyond the positive radius"] == 0
-    # a shuffled image order spreads the cliques along the route; smallest index first keeps them at its start
+    # the search scans the drawn groups in a seeded order, so clique places cover the route as random places do
+    # (scanned by index, 0.94 of them sat in its first quarter); a shuffled image order spreads them too
     first = "places in the first quarter"
-    assert cp.route_coverage(batches[cp.CLIQUES], route["clusters"])[first] > 0.6
-    assert cp.route_coverage(batches["cliques, random image order"], route["clusters"])[first] < 0.45
+    cov = {n: cp.route_coverage(b, route["clusters"])[first] for n, b in batches.items()}
+    assert all(abs(cov[n] - cov[cp.RANDOM]) < 0.1 for n in cov), cov
+    assert cov["cliques, random image order"] < 0.45
     assert cp.batch_profile(batches["cliques, random image order"], route["utm"], radius)[
         "place pairs beyond the positive radius"] == 0
     # uniform Eq. (1): the batches do not depend on the descriptors it was given
