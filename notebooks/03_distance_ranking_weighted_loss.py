@@ -18,17 +18,12 @@
 # %% [markdown]
 # # 03 · DW-T-Loss: distance-weighted and cross-entropy triplet losses
 #
-# **Aim.** Reproduce, in miniature, the loss study of *Distance-Ranking-Based Weighted Triplet Loss for
-# Visual Place Recognition* (Xiong, Xu & Meng): VGG16 conv5 with NetVLAD-64 on Pittsburgh30k, under four
-# losses. Here we fine-tune the last block of the **course backbone** with **NetVLAD** on the tiny city
-# world. You will
+# **Aim.** Reproduce, in miniature, the loss study of Xiong, Xu & Meng (VGG16 with NetVLAD-64 on
+# Pittsburgh30k, four losses): here the **course backbone**'s last block with **NetVLAD**, on the tiny city. You will
 #
-# * see what Eq. (4) with $\sigma = 800$ m does to positives within 10–25 m;
 # * build the cross-entropy triplet loss, Eqs. (5)–(8), and DW-T-Loss, Eq. (9), in plain torch;
-# * compare each loss's gradient with T-Loss's, and see what a softmax without temperature does;
-# * fine-tune under four losses (a **Table II analog**) and two poolings (a **Table III analog**), over 5
-#   paired seeds, next to the paper's numbers;
-# * see when the distance weight is just a learning-rate factor: under SGD or Adam;
+# * compare each loss's gradient with T-Loss's, under SGD and under Adam;
+# * fine-tune four losses and two poolings (**Table II and III analogs**) over 5 paired seeds;
 # * measure the premise (can Eq. (4) rank the positives training uses?) and test DW-T-Loss where it can.
 
 # %% tags=["parameters", "grade-deps:ex-03-ce-tau"]
@@ -97,15 +92,13 @@ print(f"profile {PROFILE}")
 #
 # $$L_{DW} = -\sum w \cdot \log \hat d_n . \tag{9}$$
 #
-# **The paper's settings** (`Nanne/pytorch-NetVlad`): SGD at lr $10^{-4}$, $\sigma = 800$ m,
-# $\varepsilon = 0.1$, no per-loss rescaling of the learning rate. Here $m = 0.1$, summed over the $M = 5$
-# negatives; more in `docs/notes/03_distance_ranking_weighted_loss.md`.
+# **The paper's settings**: SGD at lr $10^{-4}$, $\sigma = 800$ m, $\varepsilon = 0.1$, one learning rate for
+# every loss. Here $m = 0.1$, summed over the $M = 5$ negatives.
 
 # %% [markdown]
 # ## Eq. (4): what σ = 800 m means for positives within 10–25 m
 #
-# The numbers come from the tested function `vpr_nb.widgets.distance_weight_curve`; the sliders below
-# (JupyterLab only) are a thin view of it.
+# The sliders below (JupyterLab only) are a thin view of the function that prints these numbers.
 
 # %%
 curve = distance_weight_curve(SIGMA, EPS, max_distance=1000.0, marks=(0.0, 5.0, 10.0, 25.0))
@@ -142,8 +135,7 @@ explorer.f(**explorer.kwargs)
 
 
 # %% [markdown]
-# **Figure 2.** The weight explorer (sliders for σ and ε, JupyterLab only), stored in its default state
-# (σ = 800 m, ε = 0.1).
+# **Figure 2.** The weight explorer (JupyterLab only), stored at σ = 800 m, ε = 0.1.
 
 # %% [markdown]
 # With σ = 800 m all positives sit on the flat start of the curve: $w$ goes from 10 at 0 m to 8.8 at 10 m.
@@ -214,11 +206,10 @@ print("CE-Loss on descriptors scaled by 1e4 (naive exp would overflow):", f"{ce_
 # %% [markdown]
 # ## The course recipe, the pretrained backbone and the references
 #
-# Every fine-tune follows the **course recipe** (`vpr_nb.recipe.RECIPE`, notebooks 03–07): the course
-# backbone's last block trains (the analogue of conv5), NetVLAD starts from k-means, and Adam trains until
-# validation R@1 stalls for 4 epochs. Each loss's learning rate is chosen on a separate validation city. For
-# one seed every row starts from the **same initial weights**; only the loss (with its learning rate) or the
-# pooling changes. Details: `docs/notes/03_distance_ranking_weighted_loss.md`.
+# Every fine-tune follows the **course recipe** (notebooks 03–07): the course backbone's last block trains
+# (the analogue of conv5), NetVLAD starts from k-means, and Adam trains until validation R@1 stalls for 4
+# epochs. Each loss's learning rate is chosen on a separate validation city. For one seed every row starts
+# from the **same initial weights**; only the loss (with its learning rate) or the pooling changes.
 #
 # The course backbone, a `SmallCNN` pretrained on other worlds, outputs an 8×12 map of 128-d local features; NetVLAD-16 makes a $16 \cdot 128 = 2048$-d descriptor.
 
@@ -271,8 +262,7 @@ for name, rec in REFERENCES.items():
     print(f"{name:40s}" + "".join(f"{rec[f'R@{k}']:8.3f}" for k in NS) + f"{cosines[name]:36.3f}")
 
 # %% [markdown]
-# These are the fine-tunes' starting points; each training seed re-runs NetVLAD's k-means and is compared
-# with its own start.
+# These are the fine-tunes' starting points; each seed re-runs k-means and is compared with its own start.
 #
 # ### How large is each loss's gradient? Measured on real triplets
 #
@@ -329,9 +319,9 @@ print(f"{b} valid triplet queries; their positives lie {np.median(geo_qp):.1f} m
 
 # %% [markdown]
 # W-T-Loss points exactly as T-Loss does and is about $\bar w$ times longer. CE-Loss weights each triplet by
-# $\operatorname{sig}(d_p - d_n)$ instead of 0 or 1; at the start $d_n - d_p \approx 0$, so every triplet,
-# even a satisfied one, gets about ½. Its gradient is shorter than T-Loss's and turns away from it;
-# DW-T-Loss's is about $\bar w$ times CE-Loss's. The three aggregators agree.
+# $\operatorname{sig}(d_p - d_n)$ instead of 0 or 1; at the start $d_n - d_p \approx 0$, so every triplet
+# gets about ½. Its gradient is shorter than T-Loss's and turns away from it;
+# DW-T-Loss's is about $\bar w$ times CE-Loss's.
 #
 # ### The softmax of Eqs. (5)–(6) has no temperature
 #
@@ -372,9 +362,8 @@ print(f"real triplets (initial NetVLAD model): d_n − d_p from {gap.min():.3f} 
 # loss's derivative per triplet over the histogram of the real triplets' $d_n - d_p$ (grey).
 
 # %% [markdown]
-# Without a temperature the CE loss is almost **linear** here: every triplet, hard or easy, pushes with
-# about ½, and the loss never falls below $\log(1 + e^{-2}) \approx 0.13$. T-Loss's hinge pushes only on
-# violating triplets.
+# Without a temperature the CE loss is almost **linear** here: every triplet pushes with about ½. T-Loss's
+# hinge pushes only on violating triplets.
 #
 # ### SGD or Adam: when is a factor on the gradient a factor on the step?
 #
@@ -387,8 +376,10 @@ print(f"real triplets (initial NetVLAD model): d_n − d_p from {gap.min():.3f} 
 # Table II: NetVLAD-16 with T-Loss, W-T-Loss, CE-Loss and DW-T-Loss. Table III: max and mean pooling with
 # T-Loss and DW-T-Loss (the paper's "-W" rows). Each row's learning rate is searched on seeds 0–2 (successive
 # halving; the grid grows past an edge choice). Two more rows, T-Loss and W-T-Loss, use **SGD** (momentum 0.9)
-# at the paper's lr $10^{-4}$. CI runs one epoch; the tables show the committed results. Notebooks 04
-# (0.823, 8 epochs) and 05 (0.828, lr $10^{-3}$) train the T-Loss row without this lr search.
+# at the paper's lr $10^{-4}$. CI runs one epoch; the tables show the committed results.
+#
+# **Prediction.** Under Adam W-T-Loss ties T-Loss and DW-T-Loss ties CE-Loss; under SGD W-T-Loss beats
+# T-Loss. A W-T-Loss gain under Adam would falsify this.
 
 # %%
 SGD = dataclasses.replace(RECIPE, optimizer="sgd")          # the SGD rows: the paper's optimiser and lr
@@ -637,6 +628,9 @@ plt.show()
 # Four losses train in each world: T-Loss, CE-Loss, DW-T-Loss and a **placebo**, Eq. (9) with the batch's
 # distances shuffled: the same weights, unrelated to the triplet. Each arm's lr is searched on seed 0; 5
 # paired seeds; the test set is two unseen cities. Beside it, the paper's protocol: SGD at one lr.
+#
+# **Prediction.** If ranking positives helps, DW-T-Loss beats the placebo with the premise on, not off. No
+# gap in the on world falsifies it here. Caveat: a far positive still counts as correct at test (25 m).
 
 # %%
 # NBVAL_TOLERANCE=0.02
@@ -698,14 +692,21 @@ plt.show()
 
 # %% [markdown]
 # **Reading the premise.** Random positives within 15 m spread the weight (CV 0.96 against 0.026), and a far
-# positive is a worse one here (Spearman 0.68). Yet, with each arm's learning rate searched:
+# positive is a worse one here (Spearman 0.68). Yet, with each arm's lr searched:
 #
-# * *DW-T-Loss − T-Loss, premise on*: no measurable effect, though its mean is below zero.
+# * *DW-T-Loss − T-Loss, premise on*: no measurable effect.
 # * *DW-T-Loss − placebo, premise on*: no measurable effect.
-# * *DW-T-Loss − T-Loss, premise off*: no measurable effect, as every comparison there.
+# * *DW-T-Loss − T-Loss, premise off*: no measurable effect.
 #
-# The premise holds, yet the weight does not help: a finding, not a reproduction. Under SGD at one
-# learning rate DW-T-Loss beats T-Loss, and so does its placebo: the gain is the larger step.
+# Under SGD at one lr, DW-T-Loss and its placebo gain alike: the step.
+#
+# | design | could it show the weight working? | what it showed |
+# |---|---|---|
+# | Table II, Adam, lr searched | no: Adam cancels a constant factor | no loss beats T-Loss |
+# | SGD at one lr, with a placebo | yes, as a step size | DW-T-Loss and placebo gain alike |
+# | premise on: random positives | partly: a far positive still counts at test | no measurable effect |
+#
+# Still unlike the paper: a small CNN, NetVLAD-16, a synthetic city, Adam. Not run: far positives wrong at test.
 
 # %% [markdown]
 # ## Graded exercise: a temperature for the cross-entropy form
@@ -821,19 +822,18 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 # %% [markdown]
 # ## Exercises
 #
-# 1. **A temperature, trained.** Retrain CE-Loss with τ = 0.1. Does it now behave like T-Loss, and why
-#    (see the softmax plot)?
-#    <details><summary>Hint</summary>Subclass <code>vpr_nb.losses.TripletFamilyLoss</code> so that
-#    <code>__call__(q, p, n, geo_qp=None)</code> returns <code>my_ce_loss_tau(d_p, d_n, 0.1)</code>; train
-#    it with <code>search_methods</code>.</details>
-# 2. **Seeds.** How many seeds would a paired t test need to resolve a 0.01 difference in R@1? Compare with the paper's single runs.
-#    <details><summary>Hint</summary>Roughly, solve $t_{n-1} \, s_d / \sqrt n \le 0.01$ with $t_{n-1}$ the
-#    5 % two-sided critical value ($s_d$: std of the per-seed differences; 2.78 at 5 seeds).</details>
-# 3. **SGD at the equal step.** Under SGD, train W-T-Loss at the paper's lr divided by its `RATIOS` entry.
-#    Does a paired t test then still tell it from T-Loss under SGD?
+# 1. **A temperature, trained** (one seed at the chosen lr: about 2 min on 2 cores). Retrain CE-Loss with
+#    τ = 0.1. Does it now behave like T-Loss, and why (see the softmax plot)?
+#    <details><summary>Hint</summary>A <code>TripletFamilyLoss</code> subclass whose <code>__call__</code>
+#    returns <code>my_ce_loss_tau(d_p, d_n, 0.1)</code>, trained with <code>search_methods</code>.</details>
+# 2. **Seeds** (no training). How many seeds would a paired t test need to resolve a 0.01 difference in R@1?
+#    <details><summary>Hint</summary>Solve $t_{n-1} \, s_d / \sqrt n \le 0.01$ ($s_d$: std of the per-seed
+#    differences; $t_4 = 2.78$).</details>
+# 3. **SGD at the equal step** (one seed: about 2 min; a paired test needs 5: **Project**). Under SGD, train
+#    W-T-Loss at the paper's lr divided by its `RATIOS` entry. Does it still differ from T-Loss under SGD?
 #    <details><summary>Hint</summary><code>lr=PAPER_LR / RATIOS["netvlad"]["W-T-Loss"]</code> with the
 #    <code>SGD</code> recipe.</details>
-# 4. **σ that ranks.** In a new cell, set `SIGMA = 25.0`; rerun the gradient cell. Does the cosine move?
+# 4. **σ that ranks** (seconds). In a new cell, set `SIGMA = 25.0`; rerun the gradient cell. Does the cosine move?
 #    <details><summary>Hint</summary>Watch the cosine column.</details>
 #
 # ## Takeaways
@@ -842,12 +842,12 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 #   from 10 to 8.8; W-T-Loss's gradient is T-Loss's times about 9.4, cosine 1.000.
 # * **Under SGD at one learning rate, the factor is what trains.** W-T − T = +0.022 ± 0.005 at the paper's
 #   lr. In the premise experiment the placebo, with the same weights shuffled, gains as much as DW-T-Loss.
-# * **Under Adam the plain triplet loss leads.** Mean R@1: T 0.862, W-T 0.842, CE 0.840, DW-T 0.842 (paper
-#   0.812, 0.811, 0.797, 0.826). DW-T − T (−0.020 ± 0.009) and CE − T: no measurable effect.
+# * **Under Adam no loss beats the plain triplet loss.** Mean R@1: T 0.862, W-T 0.842, CE 0.840, DW-T 0.842
+#   (paper 0.812, 0.811, 0.797, 0.826). DW-T − T (−0.020 ± 0.009) and CE − T: no measurable effect.
 # * **Where Eq. (4) can rank, it does not help here.** Random positives spread the weight (CV 0.96, not
 #   0.026), yet DW-T − T (−0.018 ± 0.009) and DW-T − placebo show no measurable effect.
 # * **Table III analog: -W does not help.** Max-W − Max and Mean-W − Mean (−0.023 ± 0.006): no measurable
-#   effect; NetVLAD beats max pooling (+0.090 ± 0.014), as in the paper.
+#   effect; NetVLAD beats max pooling (+0.090 ± 0.014).
 
 # %% [markdown]
 # ## Self-check
