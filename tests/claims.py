@@ -45,6 +45,9 @@ them: ``A beats B``, ``A is better than B``, ``A outperforms B``, ``A is above B
 just before the verb negates it. The claim must agree with one printed verdict for that pair (a claim of no
 winner agrees with "within 2 SE", "no measurable effect" and "inconclusive").
 
+**Predictions are not claims:** a sentence marked ``**Prediction.**``, one that starts with "if", or one with "would"
+or "falsify" states no outcome, so its direction and verdict words are skipped.
+
 **What it cannot check:** numbers whose quantity the sentence does not name, or that no output labels
 ("0.451 of the queries"); words instead of numbers ("about one in seven", "halve"); comparisons written with
 paraphrased names ("the layer alone", "random dense places"); sentences about papers, figures or what a reader
@@ -517,11 +520,18 @@ def check_notebook(nb: dict, name: str = "notebook", number: str | None = None,
                 if number_verdict(stated, key, occurrences) == "flag":
                     findings.append(Finding(name, index, "number", sentence,
                                             f"{stated.written} ({key}) is in no output about {key}"))
+            if _HYPOTHETICAL.search(sentence):        # a prediction or a condition states no outcome
+                continue
             for claim in direction_claims(sentence, numbers) + verdict_claims(sentence, verdicts):
                 if not claim.ok:
                     findings.append(Finding(name, index, claim.rule, sentence,
                                             f"claims {claim.said}" + (f"; {claim.why}" if claim.why else "")))
     return findings
+
+
+# A sentence that predicts or supposes (a notebook states its prediction before its results) claims no outcome:
+# its direction and verdict words are not checked (its numbers still are).
+_HYPOTHETICAL = re.compile(r"\*\*Prediction\.\*\*|^\W*(?:if|suppose)\b|\bwould\b|\bfalsif", re.I)
 
 
 def check_path(path: Path) -> list[Finding]:

@@ -160,3 +160,13 @@ def test_sentences_keep_abbreviations_and_drop_tables_headings_and_code():
           "```\nR@1 0.999\n```\n* a list item, e.g. this one.")
     assert [s for s, _ in sentences(md)] == ["By Eq. (4) the loss is 0.337.", "Next sentence.",
                                              "a list item, e.g. this one."]
+
+
+@pytest.mark.parametrize("text, flagged", [
+    ("Max-W beats Max.", True),                                              # printed: no verdict
+    ("**Prediction.** Max-W beats Max; a tie falsifies it.", False),         # a prediction states no outcome
+    ("If the weight helps, Max-W beats Max.", False),
+    ("Max-W would beat Max with another loss.", False),
+])
+def test_predictions_are_not_claims(text, flagged):
+    assert (_rules(text) == ["verdict"]) == flagged
