@@ -18,16 +18,20 @@
 # %% [markdown]
 # # 00 · The synthetic world: what visual place recognition is
 #
-# **Aim.** Meet the task and the dataset of the whole course. *Visual place recognition* (VPR) answers
-# "where was this photo taken?" by **retrieval**. A query image is compared with a database of geotagged
-# images, and the geotag of the most similar one is the answer. The answer counts as correct when that
-# image was taken within 25 m of the query (the Pittsburgh / MSLS convention). In this notebook you will
+# **Aim.** Meet the task and the dataset of the whole course. *Visual place recognition* (VPR) answers "where
+# was this photo taken?" by **retrieval**. A query image is compared with a database of geotagged images, and
+# the geotag of the most similar one is the answer. The answer counts as correct when that image was taken
+# within 25 m of the query (the convention of Pittsburgh and MSLS, two public street-view datasets). In this
+# notebook you will
 #
 # * generate the course's two synthetic worlds (`make_dataset("city")`,
 #   `make_dataset("route")`) and look at their maps, splits, conditions and geotags;
 # * compute a query's *positives* (the database images that count as correct) by hand and with `vpr_nb`;
 # * see in pixels why VPR is hard: **parallax**, **perceptual aliasing** and **condition change**;
 # * see how much a few metres change an image, and read the difficulty knobs that notebook 01 sweeps.
+#
+# The cell below sets the *profile*: `"ci"`, the small budget whose outputs are stored, or `"reproduce"`, the
+# full budget (larger worlds, more epochs and seeds).
 
 # %% tags=["parameters"]
 PROFILE = "ci"  # "ci": the tiny worlds (fast, what CI checks); "reproduce": the larger "small" worlds
@@ -56,7 +60,7 @@ print("world size:", SIZE)
 # ## Theory
 #
 # **Data.** A database $\mathcal{D} = \{(x_i, g_i)\}_{i=1}^{M}$ of images $x_i$ with geotags
-# $g_i \in \mathbb{R}^2$ (easting, northing in metres, i.e. UTM), and queries $(x_q, g_q)$ whose
+# $g_i \in \mathbb{R}^2$ (easting, northing in metres on the UTM map grid), and queries $(x_q, g_q)$ whose
 # geotag is hidden from the method and only used for scoring.
 #
 # **Positives.** The database images that count as a correct answer for query $q$ are those within a
@@ -64,15 +68,17 @@ print("world size:", SIZE)
 #
 # $$\mathcal{P}(q) = \{\, i : \lVert g_q - g_i \rVert_2 \le r \,\} \tag{1}$$
 #
-# with $r = 25$ m for street-level datasets (Pittsburgh, MSLS; the `city` preset). For a frame-aligned
-# route (Nordland; the `route` preset) it is the same frame $\pm 1$: Eq. (1) with $r$ just above the frame spacing.
+# with $r = 25$ m for street-level datasets (Pittsburgh, MSLS; the `city` preset). For a frame-aligned route
+# (Nordland, a Norwegian railway filmed in all four seasons; the `route` preset) it is the same frame $\pm 1$:
+# Eq. (1) with $r$ just above the frame spacing.
 #
-# **Retrieval.** A model maps each image to a global descriptor $f(x) \in \mathbb{R}^D$ with
-# $\lVert f(x) \rVert_2 = 1$ and returns the nearest database image
+# **Retrieval.** A model maps each image to a *global descriptor* (one vector for the whole image)
+# $f(x) \in \mathbb{R}^D$ with $\lVert f(x) \rVert_2 = 1$ (unit length) and returns the nearest database image
 #
 # $$\hat{\imath}(q) = \arg\min_{i} \lVert f(x_q) - f(x_i) \rVert_2 , \tag{2}$$
 #
-# which is correct iff $\hat{\imath}(q) \in \mathcal{P}(q)$; Recall@N (notebook 01) generalises this to the top $N$.
+# which is correct if and only if $\hat{\imath}(q) \in \mathcal{P}(q)$; Recall@N (notebook 01) generalises
+# this to the top $N$.
 #
 # **Parallax.** A pinhole camera with horizontal field of view $\phi$ on a $W$-pixel-wide image has focal
 # length $f_{px} = \tfrac{W/2}{\tan(\phi/2)}$. A point at depth $Z$ and lateral offset $X$ projects to
@@ -211,8 +217,8 @@ for n in differ:
 # %% [markdown]
 # ## Use `vpr_nb`: positives
 #
-# `dataset.positives()` (a KD-tree range search, `vpr_nb.evaluation.positives_within`) must give exactly
-# the sets of Eq. (1) computed by hand above.
+# `dataset.positives()` and `positives_within` (a range search in a KD-tree, an index of points in space that
+# skips far-away ones) must give exactly the sets of Eq. (1) computed by hand above.
 
 # %%
 city_test, route_test = city.test, route.test
@@ -293,11 +299,12 @@ plots.image_grid(city_test.db_images[on_street], titles=[f"{x:.0f} m" for x in d
 plt.show()
 
 # %% [markdown]
-# How quickly does appearance change with distance? Below: the cosine similarity of same-heading
-# database images against the distance between their cameras. Two pixel descriptors: raw pixels
-# (flattened, L2-normalised: notebook 01's baseline) and *centred* pixels (minus the mean database image).
-# Raw cosines all sit near 0.85 (a shared layout of sky, facades and road); centring shows the decay.
-# Either way, similarity falls to the level of unrelated pairs within a few tens of metres.
+# How quickly does appearance change with distance? Below: the cosine similarity (the dot product of two
+# unit-length descriptors; 1 for identical images) of same-heading database images against the distance
+# between their cameras. Two pixel descriptors: raw pixels (flattened and scaled to unit length, i.e.
+# *L2-normalised*: notebook 01's baseline) and *centred* pixels (minus the mean database image). Raw cosines
+# all sit near 0.85 (a shared layout of sky, facades and road); centring shows the decay. Either way,
+# similarity falls to the level of unrelated pairs within a few tens of metres.
 
 # %%
 x = city.db_images.reshape(len(city.db_images), -1).astype(np.float32) / 255.0
@@ -341,7 +348,7 @@ plt.show()
 #   sweeps across the image.
 #
 # The printout gives the share of test frames whose same-season frame $s$ metres ahead is *closer* in raw
-# pixels than their own cross-season query (`vpr_nb.probes.near_duplicate_probe`, notebook 07).
+# pixels than their own cross-season query (the course's near-duplicate probe, used again in notebook 07).
 
 # %%
 NO_NEAR_CONTENT = {"roadside_spacing": 0.0, "camera_yaw": 0.0}
@@ -423,30 +430,32 @@ record("00_synthetic_world", {
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Radius.** Recompute the city positives with $r = 10$ m and $r = 50$ m (`ds.positives(radius)`).
-#    How does the mean number of positives scale with $r$? Why roughly like $r$ rather than $r^2$?
+# 1. **Radius** (no training). Recompute the city positives with $r = 10$ m and $r = 50$ m
+#    (`ds.positives(radius)`). How does the mean number of positives scale with $r$? Why roughly like $r$
+#    rather than $r^2$?
 #    <details><summary>Hint</summary><code>np.mean([len(p) for p in city_test.positives(10.0)])</code>, and
 #    the same with 50.0. Cameras stand only on the streets: how many positions does a disc of radius $r$
 #    cover on one straight street?</details>
-# 2. **Parallax.** With Eq. (3), how far must the camera move for a facade 10 m away to shift by half
-#    the image width? And the skyline at 1000 m? Check the first against the route frames above.
+# 2. **Parallax** (pen and paper). With Eq. (3), how far must the camera move for a facade 10 m away to shift
+#    by half the image width? And the skyline at 1000 m? Check the first against the route frames above.
 #    <details><summary>Hint</summary>Solve Eq. (3) for $t$ with $\Delta u = W/2 = 24$ px and the printed
 #    $f_{px} = 24.0$ px. The table's columns for $Z = 10$ m and $Z = 1000$ m check your answer. The route's
 #    camera is turned 45° to the side, so about 3.5 m of each 5 m step is sideways to its view.</details>
-# 3. **Aliasing.** Regenerate the city with `num_facade_types=2` and with `num_facade_types=40`. Which setting
-#    makes VPR harder? Compare the cosine of the most alike far-apart pair.
+# 3. **Aliasing** (no training; under 1 min). Regenerate the city with `num_facade_types=2` and with
+#    `num_facade_types=40`. Which setting makes VPR harder? Compare the cosine of the most alike far-apart
+#    pair.
 #    <details><summary>Hint</summary><code>city = make_dataset("city", seed=0, size=SIZE, num_facade_types=2)</code>.
 #    Then rerun the cosine-vs-distance cell and the aliasing cell (the default 10 styles give 0.965).
 #    Regenerate the default city afterwards.</details>
-# 4. **Conditions.** Generate `make_dataset("city", condition_strength=0.0)`. What do the queries look
-#    like now, and which difficulties remain?
+# 4. **Conditions** (no training). Generate `make_dataset("city", condition_strength=0.0)`. What do the
+#    queries look like now, and which difficulties remain?
 #    <details><summary>Hint</summary>Make
 #    <code>c0 = make_dataset("city", seed=0, size=SIZE, condition_strength=0.0)</code>. Show
 #    <code>plots.condition_grid(c0.test, per_condition=8, seed=0)</code> and compare each query row with row 0,
 #    the database condition. The knob table above lists what <code>condition_strength</code> leaves
 #    alone.</details>
-# 5. **Splits.** Why would a random train/test assignment (not geographic bands) give an over-optimistic
-#    test score?
+# 5. **Splits** (no code). Why would a random train/test assignment (not geographic bands) give an
+#    over-optimistic test score?
 #    <details><summary>Hint</summary>A random split puts training images a few metres from each test query.
 #    In the cosine table above, images less than 15 m apart are the most alike. What could a model that
 #    memorised its training images answer? Would that work in a city it has never seen?</details>

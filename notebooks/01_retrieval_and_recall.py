@@ -21,11 +21,13 @@
 # **Aim.** Turn images into descriptors, find each query's nearest database descriptors, and score the
 # result the way every VPR paper does: **Recall@N**. You will
 #
-# * derive exact nearest-neighbour search, top-$k$ retrieval, positives and Recall@N by hand in numpy,
-#   and check that they equal `vpr_nb.evaluation.retrieve / positives_within / recall_at_n`;
-# * see why faiss's inner-product index is the right tool for L2-normalised descriptors;
-# * measure two baselines that involve **no learning** (raw pixels, a randomly initialised CNN) on the
-#   tiny `city` and `route` test splits, and check them against the course's **difficulty targets**;
+# * derive exact nearest-neighbour search, top-$k$ retrieval, positives and Recall@N by hand in numpy, and
+#   check them against the package's `retrieve`, `positives_within`, `recall_at_n`;
+# * see why the inner-product index of faiss (a library for fast vector search) suits L2-normalised
+#   descriptors;
+# * measure two baselines that involve **no learning** (raw pixels, a randomly initialised *CNN*, a
+#   convolutional neural network) on the tiny `city` and `route` test splits, and check them against the
+#   course's **difficulty targets**;
 # * sweep the difficulty knobs of the synthetic world and watch raw-pixel Recall@1 move.
 
 # %% tags=["parameters"]
@@ -66,8 +68,8 @@ print("world seeds:", SEEDS)
 # ## Theory
 #
 # **Descriptors.** A model $f$ maps an image to a vector, normalised to unit length:
-# $\bar f(x) = f(x) / \lVert f(x) \rVert_2$. The simplest $f$ is the image itself, flattened
-# (*raw pixels*); a CNN backbone followed by spatial **average pooling** of its feature map
+# $\bar f(x) = f(x) / \lVert f(x) \rVert_2$. The simplest $f$ is the image itself, flattened (*raw pixels*); a
+# CNN *backbone* (its convolutional layers) followed by spatial **average pooling** of its feature map
 # $F(x) \in \mathbb{R}^{C \times h \times w}$ gives
 #
 # $$f(x) = \frac{1}{hw} \sum_{u=1}^{h} \sum_{v=1}^{w} F(x)_{:,u,v} \in \mathbb{R}^{C}. \tag{1}$$
@@ -93,10 +95,10 @@ print("world seeds:", SEEDS)
 # Queries with no positive at all are left out of $\mathcal{Q}'$ (the MSLS convention; `recall_at_n`
 # warns when it happens). R@N grows with $N$ and R@$N \to 1$ as $N$ approaches the database size.
 #
-# **faiss.** `faiss.IndexFlatIP` stores the database vectors and answers a batch of queries with one
-# matrix product $Q D^\top$ plus a partial sort: *exact* search (no approximation), in
-# $O(|Q|\,|D|\,\text{dim})$. `vpr_nb.evaluation.retrieve` uses it on L2-normalised descriptors and returns
-# the squared L2 distances of Eq. (2), best (smallest) first.
+# **faiss.** `faiss.IndexFlatIP` stores the database vectors and answers a batch of queries with one matrix
+# product $Q D^\top$ plus a partial sort: *exact* search (no approximation), in $O(|Q|\,|D|\,\text{dim})$. The
+# course's `retrieve` uses it on L2-normalised descriptors and returns the squared L2 distances of Eq. (2),
+# best (smallest) first.
 
 # %% [markdown]
 # ## Build it: retrieval and Recall@N in plain numpy
@@ -143,7 +145,7 @@ for ds in (city, route):
 # %% [markdown]
 # ## Use `vpr_nb`: the same numbers from the library
 #
-# Raw-pixel descriptors of the city test split, retrieved by hand and with `vpr_nb.evaluation`.
+# Raw-pixel descriptors of the city test split, retrieved by hand and with the package's `retrieve`.
 
 # %%
 db, q = raw_pixel_descriptors(city.db_images), raw_pixel_descriptors(city.q_images)
@@ -254,10 +256,9 @@ print(f"wrong top-1 answers: {int(wrong.sum())} of {len(correct)}; their median 
 # ## Experiment 2: what makes VPR hard? A knob sweep
 #
 # Raw-pixel R@1 on the tiny city test split as each difficulty knob of `WorldConfig` moves, the others at
-# their defaults. Only the test split is generated, so each world takes about a second. Each point
-# is the mean over the world seeds; the error bars show the spread (min to max) across seeds. Each world's
-# tiny test split has only a few hundred queries (the count printed under the retrieval grid above), so
-# differences smaller than the seed-to-seed spread printed below are noise.
+# their defaults. Only the test split is generated, so each world takes about a second. Each point is the mean
+# over the world seeds; the error bars show the spread (min to max) across seeds. Each world's tiny test split
+# has only a few hundred queries, so differences smaller than the seed-to-seed spread printed below are noise.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -306,9 +307,9 @@ plt.show()
 #
 # * **condition strength** changes illumination, palette, fog and noise: the same place in another season or
 #   light is, pixel by pixel, a different image;
-# * **position jitter** acts through parallax (notebook 00, Eq. 3): a query a few metres off the
-#   database camera sees the near facades shifted by many pixels. Its range here (0.042) is not clearly
-#   larger than the seed-to-seed spread, so its effect is barely measurable;
+# * **position jitter** acts through parallax (notebook 00, Eq. 3): a query a few metres off the database
+#   camera sees the near facades shifted by many pixels. Its range here (0.042) is not clearly larger than the
+#   seed-to-seed spread, so it has no measurable effect here;
 # * **heading jitter** rotates the view, i.e. shifts the whole image sideways;
 # * **occluders** cover a part of the image; a descriptor that already fails on the rest of the image
 #   barely notices them;
@@ -333,35 +334,36 @@ record("01_retrieval_and_recall", {
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Cosine vs L2.** Show numerically that without L2 normalisation, ranking by inner product and by L2
-#    distance can disagree. Take two database vectors of different lengths.
+# 1. **Cosine vs L2** (no training). Show numerically that without L2 normalisation, ranking by inner product
+#    and by L2 distance can disagree. Take two database vectors of different lengths.
 #    <details><summary>Hint</summary>Eq. (2) drops $\lVert d \rVert^2$ only because it is 1 for every database
 #    vector. Take the query <code>q = np.array([[1.0, 0.0]])</code>, a short vector pointing its way and a long
 #    one at 45°, e.g. <code>db = np.array([[0.9, 0.0], [3.0, 3.0]])</code>. Rank them with
 #    <code>q @ db.T</code> (largest first) and with <code>retrieve_by_hand(db, q, 2)</code> (smallest squared
 #    distance first).</details>
-# 2. **Recall@N by hand, differently.** Rewrite `recall_by_hand` with the rank of the *first* positive of
-#    each query. Then get every R@N from a histogram of these ranks.
+# 2. **Recall@N by hand, differently** (no training). Rewrite `recall_by_hand` with the rank of the *first*
+#    positive of each query. Then get every R@N from a histogram of these ranks.
 #    <details><summary>Hint</summary>Let <code>hits = np.isin(idx[i], positives[i])</code> for query <code>i</code>.
 #    If <code>hits.any()</code>, <code>np.argmax(hits)</code> is the (0-based) rank of its first positive;
 #    otherwise give it rank <code>K</code>. R@N is then the share of ranks below N:
 #    <code>np.cumsum(np.bincount(ranks, minlength=K + 1))[N - 1] / len(ranks)</code>. It must reproduce the
 #    printed <code>{1: 0.226, 5: 0.604, 10: 0.761, 20: 0.887}</code> from <code>idx_hand</code> and
 #    <code>pos_hand</code>.</details>
-# 3. **Radius.** Evaluate the raw-pixel baseline with $r = 10$ m and $r = 50$ m. Why does R@1 grow with
-#    $r$? Why is a fixed $r$ essential when comparing methods across papers?
+# 3. **Radius** (no training). Evaluate the raw-pixel baseline with $r = 10$ m and $r = 50$ m. Why does R@1
+#    grow with $r$? Why is a fixed $r$ essential when comparing methods across papers?
 #    <details><summary>Hint</summary>Keep the raw-pixel ranking <code>idx_lib</code> and change only the
 #    positives. Use <code>recall_at_n(idx_lib, positives_within(city.db_utm, city.q_utm, 10.0), NS)</code>, then
 #    50.0. The retrieval does not change, only which answers count as correct.</details>
-# 4. **Which condition is hardest?** Split the city raw-pixel R@1 by query condition (`city.q_condition`,
-#    `city.condition_names`). Does the ranking match notebook 00?
+# 4. **Which condition is hardest?** (No training.) Split the city raw-pixel R@1 by query condition
+#    (`city.q_condition`, `city.condition_names`). Does the ranking match notebook 00?
 #    <details><summary>Hint</summary>Use <code>correct</code> from the retrieval grid above. For each query of
 #    the seed-0 city, it says whether the first raw-pixel answer is a positive. Average it over
 #    <code>city.q_condition == c</code> for each condition <code>c</code> (label:
 #    <code>city.condition_names[c]</code>). Each condition has only about 60 of the 318 queries, so repeat on
 #    <code>worlds["city", 1]</code> before you rank them.</details>
-# 5. **A better untrained descriptor.** Try `build_model("small_cnn", "gem")` and `"max"` pooling with random
-#    weights, or raw pixels of a 2× downsampled image. Do any of them beat raw pixels here?
+# 5. **A better untrained descriptor** (no training). Try `build_model("small_cnn", "gem")` and `"max"`
+#    pooling with random weights, or raw pixels of a 2× downsampled image. Do any of them beat raw pixels
+#    here?
 #    <details><summary>Hint</summary>Build each model like <code>random_cnn</code>. Call
 #    <code>vpr_nb.seed_everything(0)</code>, then <code>build_model("small_cnn", "gem")</code>, and describe the
 #    images with <code>compute_descriptors(model, images)</code>. For the downsampled pixels, average 2×2 blocks
@@ -376,8 +378,9 @@ record("01_retrieval_and_recall", {
 # * Recall@N, Eq. (4), counts a query as solved if any of the first N results is within 25 m; queries
 #   without a positive are excluded.
 # * Without learning, raw pixels and a random CNN retrieve the right place only occasionally (the numbers
-#   above). In the knob sweep, heading jitter and condition changes move raw-pixel R@1 the most. Aliasing
-#   (few facade types) comes next; position jitter and occluders hardly matter at this budget. The following notebooks learn descriptors that do much better.
+#   above). In the knob sweep, heading jitter and condition changes move raw-pixel R@1 the most. Aliasing (few
+#   facade types) comes next; position jitter and occluders have no measurable effect at this budget. The
+#   following notebooks learn descriptors that do much better.
 
 # %% [markdown]
 # ## Self-check

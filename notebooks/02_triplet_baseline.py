@@ -18,14 +18,15 @@
 # %% [markdown]
 # # 02 · The triplet baseline: learning a place descriptor
 #
-# **Aim.** Train the course's first real VPR model: a small CNN with GeM pooling, trained with the
-# **triplet margin loss** on NetVLAD-style weakly supervised triplets. You will
+# **Aim.** Train the course's first real VPR model: a small CNN with GeM pooling, trained with the **triplet
+# margin loss** on weakly supervised triplets mined as in NetVLAD (a 2016 place-recognition paper). You will
 #
-# * derive the triplet loss (Eq. 3 of DW-T-Loss) and check it against
-#   `torch.nn.TripletMarginLoss` and `vpr_nb.losses.triplet_loss`;
+# * derive the triplet loss (Eq. 3 of the DW-T-Loss paper) and check it against `torch.nn.TripletMarginLoss`
+#   and the course's `triplet_loss`;
 # * measure **why mining matters**: how many *random* and how many *hard* negatives violate the margin;
 # * see why, with 4 views per place, the positive must face the query's way;
-# * train the recipe with `vpr_nb.training.train` from random weights, far above the raw pixels of notebook 01;
+# * train the recipe with the course's training loop `train` from random weights, far above the raw pixels of
+#   notebook 01;
 # * spot a **collapsed** run (every image mapped to nearly one descriptor) from two recorded numbers;
 # * meet the **course backbone**: the pretrained network that notebooks 03–07 fine-tune.
 #
@@ -97,8 +98,8 @@ print(f"profile {PROFILE}: {EPOCHS} epochs, StepLR({STEP_SIZE}, 0.5), ablations 
 #
 # $$f_c = \Big(\frac{1}{n}\sum_{i=1}^{n} x_{c,i}^{\,p}\Big)^{1/p}, \tag{GeM}$$
 #
-# The exponent $p$ is learnt (3 at the start): $p = 1$ is mean pooling, $p \to \infty$ max pooling.
-# `vpr_nb.aggregation.GeM` implements it; notebook 04 compares it with NetVLAD.
+# The exponent $p$ is learnt (3 at the start): $p = 1$ is mean pooling, $p \to \infty$ max pooling. The
+# course's `GeM` layer implements it; notebook 04 compares it with NetVLAD.
 
 # %% [markdown]
 # ## Build it: Eq. (3) in plain torch
@@ -242,8 +243,9 @@ print(f"untrained network's chosen positive facing the query's way: {same_way.me
 # ## Experiment: train the recipe
 #
 # Small CNN + GeM, Eq. (3) with $m = 0.1$, and the $M = 5$ hardest of 300 negatives per query. Batch 16, SGD
-# (lr 0.05, momentum 0.9, weight decay $10^{-3}$), the learning rate halved every few epochs. The best epoch
-# on validation is kept. The stored `ci` run trains 3 epochs, one at each of lr 0.05, 0.025 and 0.0125.
+# (learning rate lr 0.05, momentum 0.9, weight decay $10^{-3}$), the learning rate halved every few epochs.
+# The best epoch on validation is kept. The stored `ci` run trains 3 epochs, one at each of lr 0.05, 0.025 and
+# 0.0125.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -328,9 +330,9 @@ plt.show()
 #
 # ### Test Recall@N against the baselines
 #
-# The last row is the frozen **course backbone** (`vpr_nb.pretrain.course_backbone()`) with GeM. It is a
-# wider SmallCNN pretrained on other synthetic worlds, never this one, standing in for the papers' ImageNet-VGG16
-# and DINOv2. Notebooks 03–07 start from it.
+# The last row is the frozen **course backbone** (`course_backbone()`) with GeM. It is a wider SmallCNN
+# pretrained on other synthetic worlds, never this one. It stands in for the papers' large networks pretrained
+# on millions of photos (VGG16 on ImageNet, DINOv2). Notebooks 03–07 start from it.
 
 # %%
 te = ds.test
@@ -430,8 +432,7 @@ else:
     print("ablations skipped in the ci profile (run with PROFILE = 'reproduce', or see Exercise 1)")
 
 # %% [markdown]
-# The stored `ci` run skips the ablations. The `reproduce` profile prints their test Recall@N and draws
-# their learning curves.
+# The stored `ci` run skips them; the `reproduce` profile prints and plots them.
 
 # %%
 record("02_triplet_baseline", {
@@ -577,30 +578,33 @@ check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 qu
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Ablations by hand.** Run `train_recipe()` without `max_heading_diff`, and with `num_candidates=M`. How
-#    many epochs does each need to reach the recipe's validation R@1?
+# 1. **Ablations by hand** (about 4 min on 2 cores: two 14-epoch runs). Run `train_recipe()` without
+#    `max_heading_diff`, and with `num_candidates=M`. How many epochs does each need to reach the recipe's
+#    validation R@1?
 #
 #    <details><summary>Hint</summary>Set <code>PROFILE = "reproduce"</code> (3 epochs are too few) and compare
 #    <code>[e["val"][1] for e in hist.epochs]</code> epoch by epoch.</details>
-# 2. **Margin.** Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$ (pytorch-NetVlad's margin on
-#    plain L2). What fraction of mined triplets violates the margin at the end of training?
+# 2. **Margin** (about 1 min: two 3-epoch runs). Train with $m = 0.3$ and with $m = \sqrt{0.1} \approx 0.32$
+#    (pytorch-NetVlad's margin on plain L2). What fraction of mined triplets violates the margin at the end of
+#    training?
 #
 #    <details><summary>Hint</summary>Pass <code>TripletLoss(margin=0.3)</code> to <code>TripletSource</code>
 #    in a copy of <code>train_recipe</code>; <code>mining_table</code> reads the global margin.</details>
-# 3. **Squared distances, trained.** Train with the graded exercise's loss: pass `TripletSource` a subclass of
-#    `vpr_nb.losses.TripletFamilyLoss` whose `__call__(q, p, n, geo_qp=None)` returns
-#    `my_sq_triplet_loss(q, p, n, margin)`. For $d(q, p) = 0.5$, which squared margin selects the same
-#    violating triplets as $m = 0.1$?
+# 3. **Squared distances, trained** (about 1 min: one 3-epoch run). Train with the graded exercise's loss:
+#    pass `TripletSource` a subclass of `vpr_nb.losses.TripletFamilyLoss` whose
+#    `__call__(q, p, n, geo_qp=None)` returns `my_sq_triplet_loss(q, p, n, margin)`. For $d(q, p) = 0.5$,
+#    which squared margin selects the same violating triplets as $m = 0.1$?
 #
 #    <details><summary>Hint</summary>Equate the boundaries $d_n = d_p + m$ and $d_n^2 = d_p^2 + m'$. Does one
 #    $m'$ work for every $d_p$?</details>
-# 4. **Pooling.** Replace GeM by `"max"` or `"mean"` pooling (`build_model("small_cnn", "max")`). Which is
-#    best here? (Notebook 03 measures it with several seeds.)
+# 4. **Pooling** (about 3 min: six 3-epoch runs). Replace GeM by `"max"` or `"mean"` pooling
+#    (`build_model("small_cnn", "max")`). Which is best here? (Notebook 03 measures it with several seeds.)
 #
 #    <details><summary>Hint</summary>One seed moves R@1 by several points: run two or three per
 #    pooling.</details>
-# 5. **Semi-hard negatives.** FaceNet trains on negatives farther than the positive but within the margin.
-#    Implement that selection from the output of `mine_triplets` and compare.
+# 5. **Semi-hard negatives** (about 1 min: one 3-epoch run). FaceNet (a face-recognition model) trains on
+#    negatives farther than the positive but within the margin. Implement that selection from the output of
+#    `mine_triplets` and compare.
 #
 #    <details><summary>Hint</summary>From <code>mine(300)</code>, keep negatives with
 #    $d(q,p) < d(q,n) < d(q,p) + m$.</details>

@@ -23,9 +23,8 @@
 # Its descriptor distance hardly grows over the first tens of metres. The paper calls this the
 # **Geographic Distance Sensitivity (GDS)** and plots it (its Fig. 1). Here you will
 #
-# * measure GDS (`vpr_nb.gds.gds_profile`): the descriptor distance per geographic-distance bin, the
-#   **mis-ordering probability** (the chance that a farther image looks more similar) and the **top-k order
-#   agreement**;
+# * measure GDS: the descriptor distance per geographic-distance bin, the **mis-ordering probability** (the
+#   chance that a farther image looks more similar) and the **top-k order agreement**;
 # * see how mis-ordering at 10 m caps Recall@1, and why the profile's **slope** misleads;
 # * compare on the dense `route` world (frames 5 m apart, positives = ±1 frame): raw pixels, the frozen
 #   backbone and two **fine-tuned** versions (triplets; Multi-Similarity over 25 m places);
@@ -98,8 +97,8 @@ print(f"profile {PROFILE}: fine-tuning seeds {RUN['seeds']}, at most {RUN['max_e
 #
 # $$p(d_1, d_2) \approx \Phi\!\left(\frac{\mu_1 - \mu_2}{\sqrt{\sigma_1^2 + \sigma_2^2}}\right), \tag{3}$$
 #
-# or, without the Gaussian, counted (graded exercise). What matters is the gap between means *relative to
-# the spread*.
+# with $\Phi$ the standard normal CDF, or, without the Gaussian, counted (graded exercise). What matters is
+# the gap between means *relative to the spread*.
 #
 # **The slope is not scale-free.** Scaling every descriptor distance changes $s$ but no ranking, so no $p$.
 # *If* the profile were a line with one spread $\bar\sigma$ in the fit range
@@ -120,9 +119,9 @@ print(f"profile {PROFILE}: fine-tuning seeds {RUN['seeds']}, at most {RUN['max_e
 # (treating the two comparisons as independent). With $p(0, 10) = 0.4$ the cap is $0.36$, however well the
 # descriptor recognises the *area*: close, but not there.
 #
-# **Pairs must share content.** On the route every camera faces along the track. In the `city` world each
-# spot is photographed in 4 headings; images there facing different ways share no content. A city profile
-# needs **heading-consistent pairs** (exercise 4).
+# **Pairs must share content.** On the route every camera faces along the track. In the `city` world, images
+# of one spot facing different ways share no content: a city profile needs **heading-consistent pairs**
+# (exercise 4).
 
 # %% [markdown]
 # ## The data
@@ -184,9 +183,8 @@ print(f"frozen backbone: p(0 m, 10 m) = {p_mis_by_hand(mu, sd, 0, 2):.3f}, slope
 # %% [markdown]
 # ## Use `vpr_nb`: the same profile from the library
 #
-# `vpr_nb.gds.gds_profile` computes Eqs. (1)–(2) with a k-d tree range search, never forming an
-# $N \times N$ matrix (`bench/bench_gds.py`). `vpr_nb.gds.misordering_probability` gives Eq. (3). Same
-# numbers as above:
+# `gds_profile` computes Eqs. (1)–(2) with a k-d tree range search (notebook 00), never forming an
+# $N \times N$ matrix. `misordering_probability` gives Eq. (3). Same numbers as above:
 
 # %%
 def profile_of(d):
@@ -203,8 +201,7 @@ gap = max(np.abs(mu - prof_f.mean).max(), np.abs(sd - prof_f.std).max(),
 print(f"counts, means, stds and p(0 m, 10 m): by hand = vpr_nb to 1e-5: {bool(gap < 1e-5)}")
 
 # %% [markdown]
-# The frozen backbone's profile as a picture (`vpr_nb.plots.plot_gds_misordering`), with Eq. (3) for the
-# 0 m positive and the 10 m negatives.
+# The frozen backbone's profile as a picture, with Eq. (3) for the 0 m positive and the 10 m negatives.
 
 # %%
 plots.plot_gds_misordering(prof_f, 0.0, 10.0, label="frozen backbone")
@@ -219,18 +216,20 @@ plt.show()
 # %% [markdown]
 # ## Experiment: raw pixels, frozen, fine-tuned
 #
-# Both arms follow the course recipe (`vpr_nb.recipe`): the course backbone with its last block trainable +
-# GeM, Adam, early stopping on validation Recall@1, and a learning rate chosen on validation. They differ
-# only in their batches, with the **same number of steps per epoch**:
+# Both arms follow the course's fine-tuning recipe: the course backbone with its last block trainable + GeM,
+# Adam, early stopping on validation Recall@1, and a learning rate chosen on validation. They differ only in
+# their batches, with the **same number of steps per epoch**:
 #
-# * **triplets** (`TripletSource`, NetVLAD-style, margin 0.1): the 5 hardest negatives lie beyond the 5 m
-#   positive radius, i.e. from 10 m on. The loss sees exactly Eq. (5): the positive must beat an image 10 m away;
-# * **Multi-Similarity loss over places** (`PlaceBatchSource`, 32 places × 4 images, as in GSV-Cities and
-#   notebook 07). A place is 5 frames (25 m), so the loss asks images 20 m apart to look *alike*.
+# * **triplets** (mined as in notebook 02, margin 0.1): the 5 hardest negatives lie beyond the 5 m positive
+#   radius, i.e. from 10 m on. The loss sees exactly Eq. (5): the positive must beat an image 10 m away;
+# * **Multi-Similarity (MS) loss over places**: batches of 32 places × 4 images, as in GSV-Cities (a
+#   street-view training set) and notebook 07. The loss pulls each place's images together and pushes other
+#   places away. A place is 5 frames (25 m), so the loss asks images 20 m apart to look *alike*.
 #
-# Each table lists per model: $p$ (Eq. 3), the top-5 order agreement (`topk_order_agreement`: pairs in
-# geographic order, 0.5 = random; Kendall's $\tau$), the slope, the gap of Eq. (4), the cap of Eq. (5) and
-# Recall@N. First the live CI run (one seed, 2 epochs), then the committed run (5 seeds, lr search).
+# Each table lists per model: $p$ (Eq. 3), the top-5 order agreement (the share of top-5 pairs in geographic
+# order, 0.5 = random; Kendall's $\tau$, a rank correlation, 0 = random), the slope, the gap of Eq. (4), the
+# cap of Eq. (5) and Recall@N. First the live `ci` run (one seed, 2 epochs), then the committed run (5 seeds,
+# lr search).
 
 # %%
 # NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
@@ -391,10 +390,12 @@ plt.show()
 #
 # * *Equal budgets.* Both arms had 34 steps an epoch and at most 24 epochs. The MS arm stays at its
 #   start at every learning rate (validation R@1 0.691 to 0.693), so its control fails and the arms are not compared.
-# * *Mis-ordering first.* Triplets halve $p(0, 10)$ against the frozen backbone (0.043 → 0.022), order more
-#   of the top-5, and add about 10 points of R@1. $p(5, 10)$ stays far from 0.
+# * *Mis-ordering first.* Triplets halve $p(0, 10)$ against the frozen backbone (0.043 → 0.022) and add about
+#   10 points of R@1: both help. Their top-5 order shows no measurable effect. $p(5, 10)$ stays far from 0.
 # * *Close, but not there: here, rarely.* The caps of Eq. (5) sit far above every R@1 (triplets: 0.957 vs
-#   0.797), and most wrong top-1s are far away (printed above Figure 3).
+#   0.797), and most wrong top-1s are far away (printed above Figure 3). The reason: a roadside object every
+#   metre, seen by a camera turned 45°, makes neighbouring frames differ (notebook 00). So the paper's finding
+#   on Nordland and MSLS barely shows here.
 # * *The batches decide.* Asking images 20 m apart to look alike fails where 20 m changes the view: the live run's
 #   validation R@1 falls from 0.691 to 0.562.
 # * *The slope is neither scale-free nor linear.* Raw pixels flatten after 5 m, the frozen backbone after
@@ -403,8 +404,8 @@ plt.show()
 # %% [markdown]
 # ## Pick a query
 #
-# `query_topk` (tested in `tests/test_gds.py`) returns a query's top-k with descriptor and true distances;
-# the widget only calls it and draws the images.
+# `query_topk` returns a query's top-k with descriptor and true distances; the widget only calls it and draws
+# the images.
 
 # %%
 # NBVAL_TOLERANCE=0.02   trained numbers: other CPUs round a little differently
@@ -560,26 +561,26 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Bin width.** Recompute a profile with `bin_width=2.5`. Why does every other bin empty out? Why does
-#    the notebook use $0.96 \times$ the frame spacing?
+# 1. **Bin width** (no training). Recompute a profile with `bin_width=2.5`. Why does every other bin empty
+#    out? Why does the notebook use $0.96 \times$ the frame spacing?
 #    <details><summary>Hint</summary>Pair distances are multiples of 5 m. Where does a rounding error put a
 #    pair on a bin edge?</details>
-# 2. **Gaussian vs empirical.** Compare `misordering_matrix(prof_t, grid, "gaussian")` with the
+# 2. **Gaussian vs empirical** (no training). Compare `misordering_matrix(prof_t, grid, "gaussian")` with the
 #    `"empirical"` version. Where does Eq. (3) fail, and why?
 #    <details><summary>Hint</summary>Distances cannot go below 0: look at the 0 m histogram's
 #    skew.</details>
-# 3. **Check Eq. (5).** For the fine-tuned model, count the queries where neither 10 m negative beats the
-#    0 m positive. Compare their fraction with $(1 - p(0, 10))^2$.
+# 3. **Check Eq. (5)** (no training). For the fine-tuned model, count the queries where neither 10 m negative
+#    beats the 0 m positive. Compare their fraction with $(1 - p(0, 10))^2$.
 #    <details><summary>Hint</summary>Query frame $i$: positive $i$, negatives $i \pm 2$.</details>
-# 4. **City, heading-consistent pairs.** Profile the frozen backbone on the `city` world (`pos_radius` 25 m,
-#    `bin_width=5`) with same-heading pairs only. Add `1e6 * (heading // 90)` to the easting passed to
-#    `gds_profile`. What does mixing headings do to the 0 m bin?
+# 4. **City, heading-consistent pairs** (no training). Profile the frozen backbone on the `city` world
+#    (`pos_radius` 25 m, `bin_width=5`) with same-heading pairs only. Add `1e6 * (heading // 90)` to the
+#    easting passed to `gds_profile`. What does mixing headings do to the 0 m bin?
 #    <details><summary>Hint</summary>Shift database and queries alike.</details>
-# 5. **Scale.** Multiply the raw-pixel descriptors by 10 (no re-normalising). Which changes, the slope or
-#    $p(0, 10)$, and why does Eq. (4) predict it?
+# 5. **Scale** (no training). Multiply the raw-pixel descriptors by 10 (no re-normalising). Which changes, the
+#    slope or $p(0, 10)$, and why does Eq. (4) predict it?
 #    <details><summary>Hint</summary>How do $\mu_b$, $\sigma_b$ and $s$ scale?</details>
-# 6. **Pairs = "all".** Profile the database against itself (`pairs="all"`). How does the curve differ from
-#    summer-vs-winter pairs?
+# 6. **Pairs = "all"** (no training). Profile the database against itself (`pairs="all"`). How does the curve
+#    differ from summer-vs-winter pairs?
 #    <details><summary>Hint</summary>Check the 0 m bin's count.</details>
 #
 # ## Takeaways

@@ -53,8 +53,8 @@ BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(epochs=2),   # epochs of the sy
 # %% [markdown]
 # ## Theory: a reproduction is a configuration
 #
-# A training run is fully described by the five sections of the typed config in `vpr_nb/config.py`. Each
-# section holds every default once; a preset holds only its deviations.
+# A training run is fully described by the five sections of the course's typed run configuration. Each section
+# holds every default once; a preset holds only its deviations.
 #
 # | section | what it fixes | DW-T-Loss on Pittsburgh30k | DINOv2-SALAD on GSV-Cities |
 # |---|---|---|---|
@@ -64,8 +64,8 @@ BUDGET = vpr_nb.notebook.budget(PROFILE, ci=dict(epochs=2),   # epochs of the sy
 # | `train` | optimiser, schedule, epochs, seed | SGD 1e-4, momentum 0.9, wd 1e-3, StepLR(5, 0.5), 30 epochs, seed 123 | AdamW 6e-5, wd 9.5e-9, LinearLR 1 → 0.2 over 4000 steps, 4 epochs × ⌈places / 60⌉ steps |
 # | `eval` | Recall@N, queries without a positive | N = 1, 5, 10, 20; they count as misses (NetVLAD's convention) | N = 1, 5, 10; excluded (MSLS's official evaluation) |
 #
-# The DW-T run's loss is Eq. (9) of DW-T-Loss in notebook 03's notation, $L_{DW} = -\sum w \cdot \log \hat d_n$.
-# Here $\hat d_n = e^{d_n} / (e^{d_p} + e^{d_n})$ is the softmax of Eqs. (5)–(6) and
+# The DW-T run's loss is Eq. (9) of DW-T-Loss, $L_{DW} = -\sum w \cdot \log \hat d_n$. Here
+# $\hat d_n = e^{d_n} / (e^{d_p} + e^{d_n})$ is the softmax of Eqs. (5)–(6) and
 # $w = \frac{1 + \varepsilon}{g_{qp} / \sigma + \varepsilon} - 1$ the weight of Eq. (4). SALAD's loss is the
 # Multi-Similarity loss, Eq. (6) of Wang et al. (notebook 07).
 
@@ -94,9 +94,9 @@ except ValueError as err:
 # %% [markdown]
 # ## Use `vpr_nb`: the presets and their commands
 #
-# Each preset is printed with the command that runs it. Real-data presets need `--set data.root=...`,
-# a dataset that `vpr_nb.datasets.load` reads. To train on several GPUs or
-# machines, start it with `torchrun --nproc_per_node N -m vpr_nb.train ...` (DistributedDataParallel).
+# Each preset is printed with the command that runs it. Real-data presets need `--set data.root=...`, a
+# dataset's folder. To train on several GPUs or machines, start it with
+# `torchrun --nproc_per_node N -m vpr_nb.train ...` (DistributedDataParallel).
 
 # %%
 ROOTS = {"pitts": "/data/Pittsburgh", "gsv-cities": "/data/GSVCities", "msls": "/data/msls"}
@@ -114,9 +114,8 @@ for name in sorted(PRESETS):
 # ## Experiment: the reproduction command on the synthetic city
 #
 # `run` is what `python -m vpr_nb.train` calls. We run the `synthetic-city-triplet` preset (notebook 02's
-# recipe) in a temporary folder. Then we read back the resolved config, the per-epoch history and the test
-# Recall@N. In CI it trains 2 epochs only, so its Recall@1 is well below notebook 02's; `make reproduce`
-# runs the preset's full 14 epochs.
+# recipe) in a temporary folder, then read back its files. The stored `ci` run trains 2 epochs only, so its
+# Recall@1 is well below notebook 02's; `make reproduce` runs the preset's full 14 epochs.
 
 # %%
 epochs = BUDGET["epochs"]
@@ -383,18 +382,19 @@ check("recall_at_1_both", [
 # %% [markdown]
 # ## Exercises
 #
-# 1. Train two runs from the repository root: `python -m vpr_nb.train --preset synthetic-city-dw --out results/city-dw`
-#    and `--preset synthetic-city-triplet --out results/city-t`. Set `RUNS_DIR = "../results"` in the
-#    parameters cell and re-run this notebook. Which loss wins? Is the gap above notebook 03's seed spread?
+# 1. Train two runs (about 3 min on 2 cores) from the repository root:
+#    `python -m vpr_nb.train --preset synthetic-city-dw --out results/city-dw` and
+#    `--preset synthetic-city-triplet --out results/city-t`. Set `RUNS_DIR = "../results"` in the parameters
+#    cell and re-run this notebook. Which loss wins? Is the gap above notebook 03's seed spread?
 #    <details><summary>Hint</summary>Two runs are one seed each. Compare the gap with notebook 03's
 #    seed-to-seed standard deviation.</details>
-# 2. Evaluate your run on the gmberton-format fixture:
+# 2. Evaluate your run on the gmberton-format fixture (no training):
 #    `python -m vpr_nb.evaluate --run results/city-t --set data.format=gmberton --set data.root=data_fixtures/gmberton/pitts30k --set data.image_size=[32,48] --out results/city-t-eval`.
 #    Why is the number meaningless?
 #    <details><summary>Hint</summary>Count the fixture's database and query images (<code>ls</code> its
 #    folders). How much does one query more or less move Recall@1?</details>
-# 3. Change one detail of the table above in a preset, e.g. `--set source.num_negatives=5`. Predict the
-#    direction of the change first.
+# 3. Change one detail of the table above in a preset, e.g. `--set source.num_negatives=5` (about 6 min: four
+#    14-epoch runs). Predict the direction of the change first.
 #    <details><summary>Hint</summary>Give a reason from the "effect" column. Then run the preset with two
 #    seeds (<code>--set train.seed=...</code>): is the change larger than the seed spread?</details>
 #
@@ -413,15 +413,15 @@ check("recall_at_1_both", [
 #
 # 1. Name the five sections of a run's configuration. Where does each default live?
 #    <details><summary>Answer</summary><code>data</code>, <code>model</code>, <code>source</code>,
-#    <code>train</code>, <code>eval</code>. Each default lives once, in <code>vpr_nb/config.py</code>; a
-#    preset holds only its deviations.</details>
+#    <code>train</code>, <code>eval</code>. Each default lives once, in its section's definition; a preset
+#    holds only its deviations.</details>
 # 2. Why can two papers' Nordland numbers differ by several points for the same model?
 #    <details><summary>Answer</summary>Their ground truth differs. It is ±1 frame (VPR-Bench, GSV-Cities), 25 m
 #    or ±10 frames. A wider tolerance counts more retrievals as correct, so the same model scores
 #    higher.</details>
 # 3. What does <code>--set section.key=value</code> do? What catches a typo in the key?
 #    <details><summary>Answer</summary>It changes one entry of the preset's config, parsed by the field's
-#    type. The function <code>resolve_config</code> rejects a key that no section knows.</details>
+#    type. <code>resolve_config</code> rejects a key that no section knows.</details>
 
 # %% [markdown]
 # ## References

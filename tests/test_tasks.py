@@ -276,3 +276,50 @@ def test_remake_says_which_notebooks_it_can_remake(capsys):
     assert flat == {("arms", "on", "a"): [0.5]}
     assert remake._flat({"arms": {"on": {"a": {"R@1": [0.5]}}}, "sgd": {"0.001": {"b": {"R@1": [0.1]}}}}, False) == \
         {("arms", "on", "a"): [0.5], ("SGD lr 0.001", "off", "b"): [0.1]}
+
+
+# --- an interrupted run resumes ----------------------------------------------------------------------------------
+RUN_TASKS = """
+import sys, hashlib, numpy as np
+from vpr_nb.kernels import apply_in_process
+apply_in_process()
+import dataclasses, torch
+torch.set_num_threads(1)
+from vpr_nb.recipe import RECIPE, FineTuneTask, Method, run_task
+from vpr_nb.synthetic import make_dataset
+ds = make_dataset("city", seed=0, blocks=(5, 2))
+tr, va = ds.train.take_queries(np.arange(32)), ds.val
+one = dataclasses.replace(RECIPE, max_epochs=2, patience=2, lr_grid=(1e-3,), search_seeds=1)
+for seed in range(4):
+    r = run_task(FineTuneTask(Method("GeM", "gem"), tr, va, one, seed, 1e-3))
+    digest = hashlib.sha256(b"".join(v.numpy().tobytes() for v in r.model.state_dict().values())).hexdigest()
+    print(seed, "reused" if r.reused else "trained", digest, flush=True)
+"""
+
+
+@pytest.mark.slow
+def test_a_run_killed_with_sigkill_resumes_with_only_what_is_missing(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from vpr_nb.kernels import pinned_environ
+
+    env = {**pinned_environ(), STORE_ENV: str(tmp_path / "store")}
+    script = tmp_path / "run.py"
+    script.write_text(RUN_TASKS)
+    proc = subprocess.Popen([sys.executable, str(script)], env=env, stdout=subprocess.PIPE, text=True)
+    first = proc.stdout.readline()                       # one task finished and stored ...
+    os.kill(proc.pid, signal.SIGKILL)                    # ... then the run is killed
+    proc.wait()
+    assert first.startswith("0 trained")
+    again = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=600)
+    lines = [line.split() for line in again.stdout.splitlines()]
+    assert [(s, how) for s, how, _ in lines][0] == ("0", "reused")   # only what is missing is trained
+    assert all(how == "trained" for _, how, _ in lines[1:]) and len(lines) == 4
+    clean = subprocess.run([sys.executable, str(script)], env={**env, STORE_ENV: "off"}, capture_output=True,
+                           text=True, timeout=600)
+    assert [d for *_, d in (line.split() for line in clean.stdout.splitlines())] == [d for *_, d in lines]
+    assert first.split()[2] == lines[0][2]               # the reused result is the bits it stored
+    time.sleep(0)

@@ -70,34 +70,54 @@ def _installed_digest() -> str:
     return package_digest(PACKAGE_DIR)
 
 
-def _value_digest(h, value) -> None:
-    if isinstance(value, np.ndarray):
-        arr = np.ascontiguousarray(value)
+def _value_digest(h, value, seen=None) -> None:
+    """Feed ``value`` to the hash ``h`` by content: arrays by their bytes, containers and objects field by field,
+    functions and classes by their qualified name; never by an ``id``-bearing ``repr``, so that the same value
+    gives the same digest in every process."""
+    seen = set() if seen is None else seen
+    if isinstance(value, (np.ndarray, torch.Tensor)):
+        arr = np.ascontiguousarray(value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else value)
         h.update(f"array {arr.dtype.str} {arr.shape}".encode())
         h.update(arr.tobytes())
-    elif isinstance(value, torch.Tensor):
-        _value_digest(h, value.detach().cpu().numpy())
-    elif isinstance(value, (list, tuple)):
+        return
+    if value is None or isinstance(value, (bool, int, float, str, bytes, np.generic)):
+        h.update(repr(value).encode())
+        return
+    if id(value) in seen:
+        h.update(b"<cycle>")
+        return
+    seen.add(id(value))
+    if isinstance(value, (list, tuple)):
         h.update(f"seq {len(value)}".encode())
         for v in value:
-            _value_digest(h, v)
+            _value_digest(h, v, seen)
+    elif isinstance(value, (set, frozenset)):
+        h.update(f"set {sorted(repr(v) for v in value)}".encode())
     elif isinstance(value, dict):
         h.update(f"dict {len(value)}".encode())
         for k in sorted(value, key=str):
             h.update(repr(k).encode())
-            _value_digest(h, value[k])
+            _value_digest(h, value[k], seen)
     elif hasattr(value, "paths") and hasattr(value, "size"):          # an on-disk image set (ImageArray)
         h.update(f"files {value.size}".encode())
         for p in value.paths:
             st = os.stat(p)
             h.update(f"{p} {st.st_size} {st.st_mtime_ns}".encode())
-    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+    elif isinstance(value, type) or callable(value) and hasattr(value, "__qualname__"):
+        h.update(f"{getattr(value, '__module__', '')}.{value.__qualname__}".encode())
+    elif dataclasses.is_dataclass(value):
         h.update(type(value).__qualname__.encode())
         for f in dataclasses.fields(value):
             h.update(f.name.encode())
-            _value_digest(h, getattr(value, f.name))
-    else:
-        h.update(repr(value).encode())
+            _value_digest(h, getattr(value, f.name), seen)
+    elif hasattr(value, "__dict__"):
+        h.update(type(value).__qualname__.encode())
+        _value_digest(h, vars(value), seen)
+    else:                      # e.g. a k-d tree: its pickled state (its arrays), not its repr (an address)
+        try:
+            h.update(pickle.dumps(value, protocol=4))
+        except Exception:      # noqa: BLE001 - unpicklable: its type is all a key can hold of it
+            h.update(type(value).__qualname__.encode())
 
 
 def split_digest(split) -> str:
@@ -112,11 +132,13 @@ def split_digest(split) -> str:
 
 
 def _object_digest(obj) -> str | None:
-    """A digest of a loss or batch-source object by its pickled bytes (its settings and arrays; functions by
-    their qualified name), or None when there is none."""
+    """A content digest of a loss or batch-source object (its settings and arrays; functions by their qualified
+    name, :func:`_value_digest`), or None when there is none."""
     if obj is None or isinstance(obj, str):
         return None
-    return hashlib.sha256(pickle.dumps(obj, protocol=4)).hexdigest()
+    h = hashlib.sha256()
+    _value_digest(h, obj)
+    return h.hexdigest()
 
 
 def runtime_parts() -> dict:
