@@ -365,3 +365,17 @@ def test_one_notebook_end_to_end_saves_into_the_reports_folder(tmp_path, monkeyp
     printed = capsys.readouterr().out
     assert "| R@1 | 0.5500 (mean of 2) | 0.6000 (mean of 2) | +0.0500 |" in printed
     assert "1 number (run times left out): 0 the same, 1 different" in printed
+
+
+def test_readme_states_the_full_run_time_the_committed_files_give():
+    import re
+
+    from vpr_nb.package_data import committed_results_dir
+    from vpr_nb.reproduce_one import full_run_hours
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    stated = re.search(r"make reproduce +# every notebook at its full budget, reports/ \(about ([\d.]+) h on 2 cores",
+                       readme)
+    assert stated, "README's make reproduce line must state its time as 'about N h on 2 cores'"
+    assert float(stated.group(1)) == full_run_hours(committed_results_dir()), \
+        "README's make reproduce time is stale: set it to vpr_nb.reproduce_one.full_run_hours()"

@@ -136,6 +136,18 @@ def estimate(stem: str, profile: str, committed_dir) -> Estimate:
     return Estimate(min(times), max(times), "; ".join(parts))
 
 
+def full_run_hours(committed_dir) -> float:
+    """The expected wall time of a whole ``make reproduce`` on 2 cores, in hours (one decimal): half the sum of
+    every notebook's :func:`estimate` (its upper end). The notebook times were measured two notebooks at a time
+    on the 2 cores, so a run's wall is about half their sum (the last timed run: 166 min of notebook time in
+    89.4 min wall). README states this figure; ``tests/test_reproduce_one.py`` keeps the two equal."""
+    def stem(nb: str) -> str:
+        own = [p.stem for p in Path(committed_dir).glob(f"{nb}_*.json") if not p.stem.endswith(("_premise", "_probes"))]
+        return own[0] if own else f"{nb}_"
+    total = sum(estimate(stem(nb), "reproduce", committed_dir).high or 0.0 for nb in MEASURED_MINUTES)
+    return round(total / 2 / 3600, 1)
+
+
 def plan_line(stem: str, profile: str, est: Estimate, why: str = "") -> str:
     """The line printed before a notebook starts: what runs, for how long, and why it runs."""
     return (f"[plan] {stem}.ipynb, {profile} profile: {est.text()} on 2 cores ({est.source})"

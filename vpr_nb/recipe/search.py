@@ -86,9 +86,8 @@ def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
     nothing to choose: every seed runs at it and counts in ``val_recall``.
 
     **Successive halving** (``recipe.halving_epochs`` = r > 0, grids of 3 or more): every lr first trains r
-    epochs; the better half by mean best validation recall so far (ties: the smaller lr) trains on to the end,
-    continued from its checkpoint (the same weights as an uninterrupted run), and the others stop
-    (``halved``). **Interior choice** (``recipe.lr_extend`` = e): while the chosen lr is the smallest or the
+    epochs; the better half by mean best validation recall so far (ties: the smaller lr) trains to the end
+    (the same weights as if it had gone on from the rung), and the others stop (``halved``). **Interior choice** (``recipe.lr_extend`` = e): while the chosen lr is the smallest or the
     largest tried, the next rate beyond it on the 1-3 ladder (:func:`ladder_step`) trains r epochs and on to
     the end only if its mean best validation recall then beats the chosen rate's after r epochs (else it is
     halved, and the choice is inside the grid); the choice is made again, at most e times (``extended``;
@@ -99,8 +98,8 @@ def lr_search(method: Method, train_split, val_split, recipe: Recipe = RECIPE, s
     0.0075 of Recall@1, the size of the differences between grid points. Each training run is a task
     (:class:`~vpr_nb.recipe.task.FineTuneTask`) on ``engine`` (default :func:`vpr_nb.engine.engine_from_env`),
     in rounds: every task of a round runs before the next round is decided, so the choice never depends on how
-    many workers ran them. A run that halving kept trains again from its start (the same weights as one that
-    continues from the rung). Each worker process computes the frozen blocks once and keeps them.
+    many workers ran them. A run that halving kept trains again from its start, so a task never needs another
+    task's checkpoint (3 more epochs per kept rate). Each worker process keeps the frozen blocks it computed.
     """
     return drive([search_rounds(method, train_split, val_split, recipe, seeds)], engine or engine_from_env())[0]
 
