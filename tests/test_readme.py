@@ -229,3 +229,20 @@ def test_the_teachers_table_lists_every_graded_exercise():
             if nbgrader.get("solution"):
                 graded.append((path.name[:2], nbgrader["grade_id"]))
     assert listed == graded, f"docs/teaching.md lists {listed}; the notebooks grade {graded}"
+
+
+def test_readme_quotes_the_pointer_the_error_messages_give():
+    """The reproduction commands' error messages send a user to a page and a section ("see PAGE, 'SECTION'");
+    README quotes that pointer: it must be the text the package prints, and the page must hold the section."""
+    said = set()
+    for path in sorted((ROOT / "vpr_nb").rglob("*.py")):
+        said |= set(re.findall(r"\(see ([\w./-]+\.md, '[^']+')\)", _text(path)))
+    assert len(said) == 1, f"the package's error messages point to {sorted(said) or 'no page'}; expected one pointer"
+    pointer = said.pop()
+    readme = re.sub(r"\s+", " ", _text(README))
+    quoted = re.search(r"error messages point there as \"([^\"]+)\"", readme)
+    assert quoted, "README no longer says where the reproduction commands' error messages point"
+    assert quoted.group(1) == pointer, f"README says the messages point to {quoted.group(1)!r}; they say {pointer!r}"
+    page, section = re.fullmatch(r"(.+), '(.+)'", pointer).groups()
+    headings = re.findall(r"^#{1,6} (.+?)\s*$", _text(ROOT / page), flags=re.M)
+    assert any(h.startswith(section) for h in headings), f"{page} has no section {section!r}: {headings}"

@@ -25,7 +25,13 @@ course uses:
 * ``python -m vpr_nb.assignments grade STUDENT.ipynb --source notebooks/NN.ipynb`` grades one
   submission and prints the points of every exercise, with the first failing case's message;
 * ``python -m vpr_nb.assignments grade-class SUBMISSIONS/ --source notebooks/ --csv scores.csv``
-  grades every ``SUBMISSIONS/<student>/**/NN_*.ipynb`` and writes one CSV row per student and exercise.
+  grades every ``SUBMISSIONS/<student>/**/NN_*.ipynb`` and writes one CSV row per student and exercise
+  (and, with ``--feedback FOLDER``, one text file per student to hand back).
+
+Both state each exercise's **chance score**, the points a random answer earns on average (a choice among
+k stated options: its points / k; a function to write: 0), and the total of a notebook; ``--weigh-choices``
+makes a choice among k options worth ``1 - 1/k`` of its points (default: the notebook's points, as nbgrader
+gives them).
 
 Grading treats a submission as hostile. The grader (trusted) reads the instructor notebooks once and
 builds every case's inputs and reference; checks the "own code" rule on the submitted source
@@ -54,20 +60,21 @@ from pathlib import Path
 import nbformat
 
 from .grading import isolation, sandbox
-from .grading.classroom import CSV_FIELDS, grade_class, write_csv_atomically
-from .grading.exercise import STUB_MESSAGE, Exercise, Grade, Source, exercise_specs, grade_exercise
+from .grading.classroom import CSV_FIELDS, feedback_text, grade_class, write_csv_atomically, write_feedback
+from .grading.exercise import STUB_MESSAGE, Exercise, Grade, Source, exercise_specs, grade_exercise, weigh_choices
 from .grading.isolation import NO_SANDBOX, NoSandboxError
 from .grading.markers import (BEGIN_HIDDEN, BEGIN_SOLUTION, DEPS_TAG, END_HIDDEN, END_SOLUTION, deps_of, exercise_id,
                               exercises, is_parameters, is_solution, is_test, nbgrader_meta)
 from .grading.owncode import assert_own_code, library_references
-from .grading.spec import Case, check, one_of
+from .grading.spec import Case, check, guess_chance, one_of
 from .grading.submission import CPU_MARGIN_S, DEFAULT_TIMEOUT, MAX_SUBMISSION_BYTES, grade
 
 __all__ = ["BEGIN_HIDDEN", "BEGIN_SOLUTION", "CODE_STUB", "CPU_MARGIN_S", "CSV_FIELDS", "Case", "DEFAULT_TIMEOUT",
            "DEPS_TAG", "END_HIDDEN", "END_SOLUTION", "Exercise", "Grade", "MAX_SUBMISSION_BYTES", "MD_STUB",
-           "NO_SANDBOX", "NoSandboxError", "STUB_MESSAGE", "Source", "assert_own_code", "check", "deps_of", "exercise_id", "exercise_specs",
-           "exercises", "generate", "grade", "grade_class", "grade_exercise", "is_parameters", "is_solution",
-           "is_test", "library_references", "main", "one_of", "student_version", "write_csv_atomically"]
+           "NO_SANDBOX", "NoSandboxError", "STUB_MESSAGE", "Source", "assert_own_code", "check", "deps_of",
+           "exercise_id", "exercise_specs", "exercises", "feedback_text", "generate", "grade", "grade_class",
+           "grade_exercise", "guess_chance", "is_parameters", "is_solution", "is_test", "library_references", "main",
+           "one_of", "student_version", "weigh_choices", "write_csv_atomically", "write_feedback"]
 
 CODE_STUB = "raise NotImplementedError()"
 MD_STUB = "YOUR ANSWER HERE"
@@ -139,6 +146,19 @@ def generate(source_dir, out_dir, pattern: str = "[0-9][0-9]_*.ipynb") -> list[P
     return written
 
 
+def _pts(x: float) -> str:
+    return f"{round(x, 2):g}"
+
+
+def _chance_lines(rows: list[dict]) -> list[str]:
+    """Per notebook of a class's rows: its points and its chance score (what random answers earn on average)."""
+    per: dict[str, dict[str, tuple[float, float]]] = {}
+    for r in rows:
+        per.setdefault(r["notebook"], {})[r["exercise"]] = (r["max_points"], r["chance"])
+    return [f"{nb}: {_pts(sum(m for m, _ in ex.values()))} points, chance score "
+            f"{_pts(sum(c for _, c in ex.values()))} (random answers, on average)" for nb, ex in sorted(per.items())]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m vpr_nb.assignments", description="student versions and grading")
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -153,7 +173,11 @@ def main(argv=None) -> int:
     c.add_argument("--source", type=Path, required=True, help="the folder of instructor notebooks")
     c.add_argument("--csv", type=Path, default=Path("scores.csv"))
     c.add_argument("--jobs", type=int, default=1, help="submissions graded at the same time (one per core)")
+    c.add_argument("--feedback", type=Path, default=None,
+                   help="also write FOLDER/<student>.txt: each exercise's points and the reason of each zero")
     for q in (r, c):
+        q.add_argument("--weigh-choices", action="store_true",
+                       help="a choice among k options is worth 1 - 1/k of its points (default: the notebook's points)")
         q.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, help="wall-clock and CPU seconds per exercise")
         q.add_argument("--sandbox", choices=sandbox.BACKENDS, default=None,
                        help="bwrap (bubblewrap, the default) or process (no OS sandbox: needs --trusted)")
@@ -168,7 +192,11 @@ def main(argv=None) -> int:
             return 0
         if args.cmd == "grade-class":
             rows = grade_class(args.folder, args.source, args.csv, args.timeout, jobs=args.jobs, backend=args.sandbox,
-                               trusted=args.trusted)
+                               trusted=args.trusted, weigh=args.weigh_choices)
+            for line in _chance_lines(rows):
+                print(line)
+            if args.feedback is not None:
+                print(f"wrote {len(write_feedback(rows, args.feedback))} feedback files into {args.feedback}")
             total = sum(r["points"] for r in rows)
             unsandboxed = isolation.TRUSTED_LABEL in {r["sandbox"] for r in rows}
             print(f"{len({r['student'] for r in rows})} students, {len(rows)} exercises graded, "
@@ -176,15 +204,17 @@ def main(argv=None) -> int:
             return 0
         backend = isolation.choose_backend(args.sandbox, args.trusted)
         print(f"sandbox: {isolation.describe(backend)}")
-        grades = grade(args.student, args.source, args.timeout, backend=backend, trusted=args.trusted)
+        grades = grade(args.student, args.source, args.timeout, backend=backend, trusted=args.trusted,
+                       weigh=args.weigh_choices)
     except (ValueError, FileNotFoundError, NoSandboxError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     for gr in grades:
-        print(f"{gr.grade_id:32s} {gr.points:g} / {gr.max_points:g}  ({gr.seconds:.1f} s)"
-              + (f"\n    {gr.error}" if gr.error else ""))
+        print(f"{gr.grade_id:32s} {_pts(gr.points)} / {_pts(gr.max_points)}  chance {_pts(gr.chance)}  "
+              f"({gr.seconds:.1f} s)" + (f"\n    {gr.error}" if gr.error else ""))
     total, best = sum(g.points for g in grades), sum(g.max_points for g in grades)
-    print(f"{'total':32s} {total:g} / {best:g}" + (f"  ({isolation.TRUSTED_LABEL})" if backend != "bwrap" else ""))
+    print(f"{'chance score':32s} {_pts(sum(g.chance for g in grades))} / {_pts(best)}  (random answers, on average)")
+    print(f"{'total':32s} {_pts(total)} / {_pts(best)}" + (f"  ({isolation.TRUSTED_LABEL})" if backend != "bwrap" else ""))
     return 0
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import nbformat
 
 from . import sandbox
-from .exercise import Grade, Source
+from .exercise import Source, weigh_choices
 from .isolation import choose_backend, describe, label
 from .markers import exercise_id, exercises
 from .submission import DEFAULT_TIMEOUT, grade, limits_for
@@ -31,7 +31,7 @@ def _student_notebooks(folder: Path, names: set[str]):
                 yield student.name, path
 
 
-CSV_FIELDS = ["student", "notebook", "exercise", "points", "max_points", "seconds", "reason", "sandbox"]
+CSV_FIELDS = ["student", "notebook", "exercise", "points", "max_points", "chance", "seconds", "reason", "sandbox"]
 
 
 def write_csv_atomically(rows: list[dict], csv_path: Path) -> None:
@@ -50,15 +50,52 @@ def write_csv_atomically(rows: list[dict], csv_path: Path) -> None:
         raise
 
 
+def _pts(x: float) -> str:
+    return f"{round(float(x), 2):g}"
+
+
+def feedback_text(student: str, rows: list[dict]) -> str:
+    """What one student gets back: per notebook, each exercise's points, the reason of each zero and the total
+    beside the chance score (what random answers earn on average)."""
+    lines = [f"Grades of {student}"]
+    for nb in dict.fromkeys(r["notebook"] for r in rows):
+        mine = [r for r in rows if r["notebook"] == nb]
+        lines += ["", nb]
+        for r in mine:
+            lines.append(f"  {r['exercise']:28s} {_pts(r['points'])} / {_pts(r['max_points'])}")
+            if r["reason"]:
+                lines.append(f"      {r['reason']}")
+        got, best, chance = (sum(r[k] for r in mine) for k in ("points", "max_points", "chance"))
+        lines.append(f"  {'total':28s} {_pts(got)} / {_pts(best)}  (random answers earn {_pts(chance)} on average)")
+    return "\n".join(lines) + "\n"
+
+
+def write_feedback(rows: list[dict], folder) -> list[Path]:
+    """One text file per student, ``folder/<student>.txt`` (:func:`feedback_text`), written atomically."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for student in dict.fromkeys(r["student"] for r in rows):
+        target = folder / f"{student}.txt"
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=folder)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(feedback_text(student, [r for r in rows if r["student"] == student]))
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, target)
+        written.append(target)
+    return written
+
+
 def grade_class(folder, source_dir, csv_path=None, timeout: float = DEFAULT_TIMEOUT, log=print, jobs: int = 1,
-                backend: str | None = None, trusted: bool = False) -> list[dict]:
+                backend: str | None = None, trusted: bool = False, weigh: bool = False) -> list[dict]:
     """Grade every submission under ``folder/<student>/`` against the notebooks of ``source_dir``.
 
     The instructor notebooks are read once, before any submission runs (their cases are built then);
     each submission is graded as :func:`grade` does, ``jobs`` at a time, in the OS sandbox, which hides
     the instructor notebooks, ``source_dir``, ``folder`` and the grades file's folder. Returns one row per
-    student, notebook and exercise (``student, notebook, exercise, points, max_points, seconds, reason,
-    sandbox``) and, when ``csv_path`` is given, rewrites that file atomically after every submission, so a
+    student, notebook and exercise (``student, notebook, exercise, points, max_points, chance, seconds, reason,
+    sandbox``; ``chance``: the points a random guess earns on average, :class:`~vpr_nb.grading.exercise.Grade`;
+    ``weigh``: a choice among k options worth ``1 - 1/k`` of its points) and, when ``csv_path`` is given, rewrites that file atomically after every submission, so a
     grading that is interrupted leaves the grades so far. A submission that cannot be read scores 0 on each
     of its exercises, with the reason.
 
@@ -95,17 +132,17 @@ def grade_class(folder, source_dir, csv_path=None, timeout: float = DEFAULT_TIME
     def one(k: int) -> None:
         student, path = subs[k]
         src = sources[path.name]
+        specs = weigh_choices(src.exercises) if weigh else src.exercises
         try:
             grades = grade(path, src.path, timeout=limits.wall_s, backend=backend, source=src, trusted=trusted,
-                           private=private)
+                           private=private, weigh=weigh)
         except (ValueError, FileNotFoundError) as err:
-            grades = [Grade(e.grade_id, 0.0, e.points, str(err)[:600]) for e in src.exercises]
+            grades = [e.failed(str(err)[:600]) for e in specs]
         except Exception as err:      # a grader bug must not lose the class's other grades
-            grades = [Grade(e.grade_id, 0.0, e.points, f"grading failed: {type(err).__name__}: {err}"[:600])
-                      for e in src.exercises]
+            grades = [e.failed(f"grading failed: {type(err).__name__}: {err}"[:600]) for e in specs]
         rows = [{"student": student, "notebook": path.name, "exercise": exercise_id(g.grade_id), "points": g.points,
-                 "max_points": g.max_points, "seconds": g.seconds, "reason": g.error, "sandbox": label(backend)}
-                for g in grades]
+                 "max_points": g.max_points, "chance": round(g.chance, 4), "seconds": g.seconds, "reason": g.error,
+                 "sandbox": label(backend)} for g in grades]
         with lock:
             done[k] = rows
             for g in grades:

@@ -10,6 +10,7 @@ function), reads the answers back as data only (:mod:`vpr_nb.grading.data`) and 
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import shutil
@@ -27,7 +28,7 @@ from .data import write as write_data
 from .isolation import choose_backend
 from .markers import deps_of, exercise_id, exercises, is_solution, is_test, nbgrader_meta
 from .owncode import own_code_message, source_violations
-from .spec import Check, collect
+from .spec import Check, collect, guess_chance
 
 
 @dataclass
@@ -38,6 +39,7 @@ class Grade:
     error: str = ""
     seconds: float = 0.0
     backend: str = ""             # the sandbox backend that graded it ("bwrap"; "process" only for trusted work)
+    chance: float = 0.0           # the points a random guess earns on average (the exercise's chance score)
 
 
 @dataclass
@@ -47,10 +49,27 @@ class Exercise:
     points: float
     setup: list[str]              # instructor cells run before the solution (grade-deps, or all cells above)
     checks: list[Check]           # what the test cell declares (visible and hidden)
+    guess: float = 0.0            # the probability that a random answer passes (a choice among k: 1/k)
 
     @property
     def id(self) -> str:
         return exercise_id(self.grade_id)
+
+    @property
+    def chance(self) -> float:
+        """The points a random guess earns on average: ``points * guess``."""
+        return self.points * self.guess
+
+    def failed(self, reason: str) -> Grade:
+        """0 points, with the reason (a submission that could not be graded at all)."""
+        return Grade(self.grade_id, 0.0, self.points, reason, chance=self.chance)
+
+
+def weigh_choices(specs: list[Exercise]) -> list[Exercise]:
+    """The exercises with each one a random guess can pass worth ``points * (1 - guess)``: a choice among k
+    options keeps ``1 - 1/k`` of its points (2/3 of a point for a three-way choice worth 1), an exercise no
+    guess passes keeps all of its points."""
+    return [dataclasses.replace(e, points=e.points * (1 - e.guess)) if e.guess else e for e in specs]
 
 
 def exercise_specs(nb: nbformat.NotebookNode, name: str = "notebook") -> list[Exercise]:
@@ -66,7 +85,7 @@ def exercise_specs(nb: nbformat.NotebookNode, name: str = "notebook") -> list[Ex
             deps = [c.source for c in nb.cells[:first]
                     if c.cell_type == "code" and not is_solution(c) and not is_test(c)]
         checks = collect(nb.cells[i].source, f"{name}: the test cell {gid!r}")
-        out.append(Exercise(gid, pts, deps, checks))
+        out.append(Exercise(gid, pts, deps, checks, guess_chance(checks)))
     return out
 
 
@@ -203,7 +222,7 @@ def grade_exercise(ex: Exercise, student: nbformat.NotebookNode, raw: bytes, lim
 
     def done(reason: str) -> Grade:
         return Grade(ex.grade_id, 0.0 if reason else ex.points, ex.points, reason[:900],
-                     round(time.monotonic() - start, 1), backend)
+                     round(time.monotonic() - start, 1), backend, ex.chance)
 
     if not solutions:
         return done(f"the solution cell {ex.id!r} is missing from the submission")

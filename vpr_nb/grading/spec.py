@@ -87,13 +87,39 @@ class Case:
 
 
 def one_of(*choices: str) -> Callable[[Any], str | None]:
-    """A rubric for a prediction: the answer must be one of ``choices`` (exactly, as strings)."""
+    """A rubric for a prediction: the answer must be one of ``choices`` (exactly, as strings).
+
+    The rubric keeps the choices (``rubric.choices``), so the grader knows what a guess at random among them
+    earns (:func:`guess_chance`)."""
     if not choices or not all(isinstance(c, str) for c in choices):
         raise ValueError(f"one_of needs the choices as strings, got {choices!r}")
+    if len(set(choices)) != len(choices):
+        raise ValueError(f"one_of: a choice is listed twice in {choices!r}")
 
     def rubric(answer):
         return None if answer in choices else f"expected one of {', '.join(map(repr, choices))}, got {answer!r:.80}"
+    rubric.choices = tuple(choices)
     return rubric
+
+
+def guess_chance(checks: list["Check"]) -> float:
+    """The probability that answering at random passes every check of one exercise.
+
+    A value (``call=False``) whose cases state its choices (:func:`one_of`; the fewest, where several do) is
+    guessed uniformly among them and passes with the share of choices that pass all its cases: 1/k for a
+    choice among k with one right answer. A function to write, or a free answer, is taken as never guessed
+    (0). An exercise of several values: the product."""
+    if not checks or any(c.call for c in checks):
+        return 0.0
+    chance = 1.0
+    for name in dict.fromkeys(c.function for c in checks):
+        cases = [case for c in checks if c.function == name for case in c.cases]
+        stated = [set(case.rubric.choices) for case in cases if hasattr(case.rubric, "choices")]
+        if not stated:
+            return 0.0
+        choices = sorted(min(stated, key=len))          # the fewest the student is offered
+        chance *= sum(all(case.verdict(c) is None for case in cases) for c in choices) / len(choices)
+    return chance
 
 
 @dataclass

@@ -12,7 +12,7 @@ from pathlib import Path
 import nbformat
 
 from . import sandbox
-from .exercise import Grade, Source, grade_exercise
+from .exercise import Grade, Source, grade_exercise, weigh_choices
 from .isolation import choose_backend
 
 DEFAULT_TIMEOUT = 120   # seconds per exercise
@@ -47,7 +47,7 @@ def limits_for(timeout: float) -> sandbox.Limits:
 
 
 def grade(student_path, source_path, timeout: float = DEFAULT_TIMEOUT, only=None, backend: str | None = None,
-          source: Source | None = None, trusted: bool = False, private=()) -> list[Grade]:
+          source: Source | None = None, trusted: bool = False, private=(), weigh: bool = False) -> list[Grade]:
     """Grade each exercise of a student's notebook against the instructor's.
 
     For each exercise the grader checks the own-code rule on the submitted solution source, then runs
@@ -57,7 +57,8 @@ def grade(student_path, source_path, timeout: float = DEFAULT_TIMEOUT, only=None
     answers back as data and compares them here with the references of the test cell's ``check(...)``
     calls. An exercise earns its points when every case passes; otherwise it scores 0 with the first
     failing case's message, a timeout after ``timeout`` seconds or how the process ended; the other
-    exercises are still graded.
+    exercises are still graded. Each :class:`Grade` also holds its chance score (``chance``: the points a random
+    guess earns on average; above 0 only for a choice among stated options).
 
     Args:
         student_path: the submitted notebook.
@@ -70,6 +71,8 @@ def grade(student_path, source_path, timeout: float = DEFAULT_TIMEOUT, only=None
             sandbox (the ``process`` backend; each :class:`Grade` says so in ``backend``) instead of refused.
         private: more of the teacher's paths the sandbox must hide (``grade_class``: the class folder and the
             grades file's folder); the instructor notebook and its folder always are.
+        weigh: a choice among k options is worth ``1 - 1/k`` of its points (:func:`~vpr_nb.grading.exercise.weigh_choices`);
+            default: the points of the notebook's metadata, as nbgrader gives them.
 
     Raises:
         vpr_nb.grading.isolation.NoSandboxError: no OS sandbox works here and ``trusted`` is false (or
@@ -78,7 +81,7 @@ def grade(student_path, source_path, timeout: float = DEFAULT_TIMEOUT, only=None
     student_path = Path(student_path)
     limits = limits_for(timeout)
     source = source or Source.read(source_path)
-    specs = source.exercises
+    specs = weigh_choices(source.exercises) if weigh else source.exercises
     if only is not None:
         only = set(only)
         specs = [e for e in specs if e.grade_id in only or e.id in only]
