@@ -865,13 +865,13 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 # %% [markdown]
 # ## Exercises
 #
-# 1. **Iterations** (one seed each: about 3 min on 2 cores). Train SALAD with 1 and with 10 Sinkhorn
+# 1. **Iterations** (two one-seed runs: about 6 min on 2 cores). Train SALAD with 1 and with 10 Sinkhorn
 #    iterations (`salad_aggregate(..., num_iters=k)`). Does the exact marginal matter for Recall?
 #    <details><summary>Hint</summary>Figure 1's error curve.</details>
 # 2. **Temperature** (seconds). Multiply the toy scores by 10 and by 0.1. How many iterations reach a row
 #    error of $10^{-4}$?
 #    <details><summary>Hint</summary>Reuse <code>row_err</code>.</details>
-# 3. **Token or clusters?** (about 3 min each). Retrain SALAD with a tiny `token_dim`, then a tiny
+# 3. **Token or clusters?** (two runs: 6 min). Retrain SALAD with a tiny `token_dim`, then a tiny
 #    `cluster_dim`. Which part carries the performance?
 #    <details><summary>Hint</summary>Override <code>SALAD_SIZE</code> in a new cell.</details>
 # 4. **Project: equal size, larger** (5 seeds, about 30 min). Compare SALAD and NetVLAD-16 at 2048-D
