@@ -374,9 +374,9 @@ print(f"real triplets (initial NetVLAD model): d_n − d_p from {gap.min():.3f} 
 # ## Experiment: Table II and Table III analogs
 #
 # Table II: NetVLAD-16 with T-Loss, W-T-Loss, CE-Loss and DW-T-Loss. Table III: max and mean pooling with
-# T-Loss and DW-T-Loss (the paper's "-W" rows). Each row's learning rate is searched on seeds 0–2 (successive
-# halving; the grid grows past an edge choice). Two more rows, T-Loss and W-T-Loss, use **SGD** (momentum 0.9)
-# at the paper's lr $10^{-4}$. CI runs one epoch; the tables show the committed results.
+# T-Loss and DW-T-Loss (the paper's "-W" rows). Each row's learning rate is searched on seeds 0–2. Two more
+# rows, T-Loss and W-T-Loss, use **SGD** (momentum 0.9) at the paper's lr $10^{-4}$. CI runs one epoch; the
+# tables show the committed results.
 #
 # **Prediction.** Under Adam W-T-Loss ties T-Loss and DW-T-Loss ties CE-Loss; under SGD W-T-Loss beats
 # T-Loss. A W-T-Loss gain under Adam would falsify this.
@@ -541,9 +541,9 @@ plt.show()
 # ### Verdicts: paired differences over seeds, behind a working control
 #
 # Each line gives the mean paired per-seed difference of test R@1, its standard error and a paired t test.
-# "Helps" or "hurts" only when Holm's p over the table is below 0.05 (`vpr_nb.verdict`). A comparison counts
-# only when its baseline beats **its own starting weights** (a one-sided t test at 5 %). Controls first, then
-# comparisons.
+# "Helps" or "hurts" only when its p, corrected for the table's comparisons, is below 0.05 (**Holm**: the
+# smallest p times their number, the next times one fewer, and so on). A comparison counts only when its
+# baseline beats **its own starting weights** (a one-sided t test at 5 %).
 
 # %%
 def r1(name):
