@@ -591,7 +591,7 @@ check("recall_at_1", [Case(f"40 queries along 60 database images 5 m apart (3 qu
 #    <details><summary>Hint</summary>Pass <code>TripletLoss(margin=0.3)</code> to <code>TripletSource</code>
 #    in a copy of <code>train_recipe</code>; <code>mining_table</code> reads the global margin.</details>
 # 3. **Squared distances, trained** (about 1 min: one 3-epoch run). Train with the graded exercise's loss:
-#    pass `TripletSource` a subclass of `vpr_nb.losses.TripletFamilyLoss` whose
+#    pass `TripletSource` a subclass of the course's `TripletFamilyLoss` whose
 #    `__call__(q, p, n, geo_qp=None)` returns `my_sq_triplet_loss(q, p, n, margin)`. For $d(q, p) = 0.5$,
 #    which squared margin selects the same violating triplets as $m = 0.1$?
 #

@@ -212,8 +212,8 @@ def salad_by_hand(f, s, g, z):
 
 # %% [markdown]
 # **The plan on an image.** A test query of the course's city world (generated here, used from now on)
-# goes through the course backbone and an untrained SALAD head, $m = 16$ (`vpr_nb.recipe.build_start`). Its
-# $n = 8 \times 12 = 96$ positions get a plan:
+# goes through the course backbone and an untrained SALAD head, $m = 16$. Its $n = 8 \times 12 = 96$
+# positions get a plan:
 
 # %%
 # NBVAL_IGNORE_OUTPUT

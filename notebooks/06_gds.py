@@ -622,5 +622,3 @@ check("r1_cap", [Case(f"a rising profile, bins {b1} and {b2}", (mu_h, sd_h, b1, 
 #   Neurocomputing 2022. [arXiv:2210.10239](https://arxiv.org/abs/2210.10239).
 # * N. Sünderhauf, P. Neubert, P. Protzel. *Are We There Yet? Challenging SeqSLAM on a 3000 km Journey Across
 #   All Four Seasons.* ICRA 2013 Workshop (Nordland).
-#
-# Code links: `docs/notes/06_gds.md`.

@@ -93,3 +93,23 @@ def test_every_ungraded_exercise_has_a_hint_and_the_notebook_ends_with_three_sel
     questions = re.findall(r"^\d+\. ", text, flags=re.M)
     answers = text.count("<details><summary>Answer</summary>")
     assert len(questions) == 3 and answers == 3, f"{path.name}: {len(questions)} self-check questions, {answers} answers"
+
+
+# Prose a student reads needs no knowledge of the package's layout: no module path (``vpr_nb.recipe.x``), no
+# maintainer file (``docs/notes/...``) and no arm code (``R07``). Allowed: a ``python -m vpr_nb.x`` command, the
+# package's name alone, the "Use `vpr_nb`" sections (they name what the next cell calls) and folded hints.
+JARGON = {r"(?<!-m )\bvpr_nb\.[a-z_]+\.[A-Za-z_]": "a module path", r"\bdocs/": "a maintainer file",
+          r"\bR0\d\b": "an arm code"}
+
+
+def _prose(cell) -> str:
+    text = re.sub(r"<details>.*?</details>", "", cell.source, flags=re.S)
+    return "" if text.lstrip().startswith("## Use `vpr_nb`") else text
+
+
+@pytest.mark.parametrize("path", ALL, ids=lambda p: p.name)
+def test_prose_names_no_module_path_file_or_arm_code(path):
+    found = [f"cell {i}: {what}: {m.group(0)!r} in {_prose(c)[max(0, m.start() - 40):m.end() + 30]!r}"
+             for i, c in _sources(path) if c.cell_type == "markdown"
+             for pattern, what in JARGON.items() for m in re.finditer(pattern, _prose(c))]
+    assert not found, f"{path.name}:\n" + "\n".join(found)
