@@ -11,13 +11,10 @@ import pytest
 from claims import check_notebook, check_path, sentences
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9][0-9]_*.ipynb"))
-REWRITTEN = ("07",)   # its prose is rewritten after its experiments are re-made
 
 
 def _param(path: Path):
-    marks = [pytest.mark.xfail(strict=False, reason="prose rewritten after the fair-tests experiments")] \
-        if path.name[:2] in REWRITTEN else []
-    return pytest.param(path, id=path.stem, marks=marks)
+    return pytest.param(path, id=path.stem)
 
 
 @pytest.mark.parametrize("path", [_param(p) for p in NOTEBOOKS])

@@ -12,6 +12,7 @@ import pytest
 
 from vpr_nb.premise.record import (paired_differences, premise_record, premise_verdicts, record_problems,
                                    verdict_lines)
+from vpr_nb.onoff import clique as onoff_clique
 from vpr_nb.verdict import WORDS as VERDICTS, gap
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,17 +111,17 @@ def _stated_verdicts(text: str, names) -> list[tuple[str, str, str | None]]:
     for name in names:
         for m in re.finditer(re.escape(name) + r"[*_]*,\s*premise\s+(on|off)\b", text):
             rest = text[m.end():].split("\n", 1)[0]
-            hits = sorted((rest.find(v), v) for v in VERDICTS if v in rest)
+            hits = sorted((rest.find(v), v) for v in (*VERDICTS, "inconclusive") if v in rest)
             found.append((name, m.group(1), hits[0][1] if hits else None))
     return found
 
 
-def _verdict_problems(record, outputs: str, markdown: str) -> list[str]:
+def _verdict_problems(record, outputs: str, markdown: str, gates=None) -> list[str]:
     """What the stored notebook gets wrong about ``record``: a verdict line (recomputed from the stored per-seed
     differences by today's rule, one Holm family per record) that its outputs do not print, or a sentence of its
     text that states another word than the recomputed one."""
-    family = premise_verdicts(record)
-    problems = [f"does not print {line!r}" for line in verdict_lines(record) if line not in outputs]
+    family = premise_verdicts(record, gates)
+    problems = [f"does not print {line!r}" for line in verdict_lines(record, gates) if line not in outputs]
     stated = _stated_verdicts(markdown, record["comparisons"])
     for name, world, said in stated:
         want = family[f"{name}, premise {world}"]
@@ -136,16 +137,21 @@ def _stored(results_file):
     path = RESULTS / results_file
     if not path.exists():
         pytest.skip(f"{results_file} is not committed yet")
-    record = json.loads(path.read_text(encoding="utf-8"))["results"]["premise"]
+    results = json.loads(path.read_text(encoding="utf-8"))["results"]
     nb = nbformat.read(ROOT / "notebooks" / PREMISE_FILES[results_file], as_version=4)
-    return record, _outputs(nb), "\n".join(c.source for c in nb.cells if c.cell_type == "markdown")
+    return results["premise"], _outputs(nb), "\n".join(c.source for c in nb.cells if c.cell_type == "markdown"), \
+        GATES.get(results_file, lambda _results: None)(results)
+
+
+# the premise files whose notebook gates a comparison on its fine-tuned baseline (07: the paper's comparison)
+GATES = {"07_premise.json": onoff_clique.premise_gates}
 
 
 @pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
 def test_stored_premise_records_and_their_verdicts(results_file):
-    record, outputs, markdown = _stored(results_file)
+    record, outputs, markdown, gates = _stored(results_file)
     assert record_problems(record) == []
-    problems = _verdict_problems(record, outputs, markdown)
+    problems = _verdict_problems(record, outputs, markdown, gates)
     assert not problems, f"{PREMISE_FILES[results_file]} against {results_file}: {problems}"
 
 
@@ -154,15 +160,24 @@ def test_every_premise_file_is_checked():
 
 
 def test_a_flipped_word_is_caught():
-    record, outputs, markdown = _stored("07_premise.json")
-    name = next(iter(record["comparisons"]))
-    word = premise_verdicts(record)[f"{name}, premise on"].word
+    record, outputs, markdown, gates = _stored("07_premise.json")
+    name = list(record["comparisons"])[1]                       # the mining-only ablation (not gated)
+    word = premise_verdicts(record, gates)[f"{name}, premise on"].word
     other = next(v for v in VERDICTS if v != word)
-    line = next(ln for ln in verdict_lines(record) if ln.startswith(f"{name}, premise on:"))
+    line = next(ln for ln in verdict_lines(record, gates) if ln.startswith(f"{name}, premise on:"))
     printed = outputs.replace(line, line[: -len(word)] + other)
-    assert any("does not print" in p for p in _verdict_problems(record, printed, markdown))
+    assert any("does not print" in p for p in _verdict_problems(record, printed, markdown, gates))
     stated = markdown.replace(f"{name}, premise on*: {word}", f"{name}, premise on*: {other}")
-    assert stated != markdown and any("the text says" in p for p in _verdict_problems(record, outputs, stated))
+    assert stated != markdown and any("the text says" in p for p in _verdict_problems(record, outputs, stated, gates))
+
+
+def test_a_failed_gate_makes_the_papers_comparison_inconclusive():
+    record, _, _, gates = _stored("07_premise.json")
+    family = premise_verdicts(record, gates)
+    for world in ("on", "off"):
+        gate = gates[f"sparse + dense cliques − sparse only, premise {world}"]
+        assert (family[f"sparse + dense cliques − sparse only, premise {world}"].word == "inconclusive") \
+            == (not gate.passed)
 
 
 def test_stated_verdicts_are_read_in_text_order():

@@ -43,6 +43,7 @@ from ..losses import MultiSimilarityLoss
 from ..models import build_model
 from ..premise import clique as premise_clique
 from ..premise.record import paired_differences, premise_record
+from ..verdict import control_gate
 from ..pretrain import course_backbone
 from ..recipe import RECIPE, Method, PlaceBatches
 from ..recipe.arms import run_arms, test_splits
@@ -270,3 +271,14 @@ def run(seeds=SEEDS, workers: int = 3, max_epochs: int | None = None, select=Non
     frozen_out = {w: {"R@1": v["R@1"], "within 2 frames": v["value"], "within 4 frames": v["within 4 frames"],
                       "failures": v["failures"], "test queries": v["test queries"]} for w, v in values.items()}
     return {"arms": arms, "premise": record, "frozen": frozen_out}
+
+
+def premise_gates(results) -> dict:
+    """The gates of the paper's comparison in a premise results file (``07_premise.json``'s ``results``): in each
+    world, sparse only (a fine-tuned baseline) must beat the frozen backbone + GeM, else "cliques − sparse only"
+    is inconclusive there (:func:`vpr_nb.premise.record.verdict_lines`' ``gates``)."""
+    clique, sparse = COMPARISONS[0]
+    return {f"{clique} − {sparse}, premise {w}": control_gate(results["arms"][w][sparse]["R@1"],
+                                                              results["frozen"][w]["R@1"], sparse,
+                                                              "frozen backbone + GeM")
+            for w in WORLDS}

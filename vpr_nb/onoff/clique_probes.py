@@ -1,21 +1,20 @@
-"""Why cliques lose to random dense places where near misses dominate (notebook 07): one probe per hypothesis,
-each changing one thing in the clique arm of CliqueMining's premise-on world (:mod:`vpr_nb.onoff.clique`).
+"""What moves the clique arm in CliqueMining's premise-on world (notebook 07): one probe per hypothesis, each
+changing one thing in the clique arm (:mod:`vpr_nb.onoff.clique`).
 
-With a frame every 1 m, *sparse + dense cliques* ends below *sparse + dense random* (the mining-only ablation),
-and its extra failures are far ones, not near misses. Each probe below replaces the clique arm's dense half by
-one variant and trains it on the same 5 seeds, world, recipe and test queries (:data:`PROBES`):
+With a frame every 1 m, *sparse + dense cliques* ends below *sparse + dense random* (the mining-only ablation;
+``notebooks/results/07_premise.json``). Each probe below replaces the clique arm's dense half by one variant and
+trains it on the same 5 seeds, world, recipe and test queries (:data:`PROBES`):
 
 - **τ 2.5 m** -- the cliques' same-place threshold 2.5 m instead of the world's ``pos_radius`` (1.01 m).
   Hypothesis: a threshold that does not scale with the frame spacing leaves negatives 2 frames (2 m) from a
   place, as alike as its positives. Side effect (the one knob sets both): a place may span 2 m.
 - **Eq. (1) uniform** -- every group descriptor equal, so Eq. (1) draws the similar clusters uniformly
   (:func:`vpr_nb.samplers.clique_batches`: all weights 0). Hypothesis: the look-alike draw is what hurts.
-- **random image order** -- the clique search walks the route's images in a shuffled order. It grows each clique
-  from the alive image of smallest index (:func:`vpr_nb.samplers.clique_batches`), so the clusters of lowest id
-  among the 16 drawn fill the batch: most clique places lie in the route's first quarter (:func:`route_coverage`).
-  Hypothesis: the dense half covers too little of the route. Side effect: walking the images in index order
-  packs a batch's places along the track (frames i, i+1, then i+3, i+4, ...), so a shuffled order also moves
-  its negatives away (:func:`batch_profile`).
+- **random image order** -- the clique search walks the route's images in a shuffled order, not each drawn
+  cluster's frames in track order (:func:`vpr_nb.samplers.clique_batches` scans the clusters in a seeded order,
+  so clique places already cover the route like random ones: :func:`route_coverage`). Hypothesis: places packed
+  along the track (frames i, i+1, then i+3, i+4, ...) hurt; a shuffled order moves some negatives away
+  (:func:`batch_profile`).
 - **4 cliques + 4 random** -- half the dense places cliques, half random route places. Hypothesis: a clique
   batch spans little of the route (its places lie within a few similar clusters), so far places seldom meet.
 

@@ -95,17 +95,19 @@ def record_problems(record, min_seeds: int = MIN_SEEDS, min_test_queries: int = 
     return problems
 
 
-def premise_verdicts(record: Mapping) -> dict[str, _verdict.Verdict]:
+def premise_verdicts(record: Mapping, gates: Mapping | None = None) -> dict[str, _verdict.Verdict]:
     """``{"<comparison>, premise <world>": Verdict}`` for every comparison and world of ``record``: one family,
-    Holm-corrected over all of them (:func:`vpr_nb.verdict.verdicts`)."""
+    Holm-corrected over all of them (:func:`vpr_nb.verdict.verdicts`). ``gates``: ``{"<comparison>, premise
+    <world>": control_gate(...)}`` where the baseline is itself fine-tuned and must pass its gate (a failed gate
+    makes the comparison "inconclusive")."""
     rec = premise_record(record["quantity"], record["real data"], record["worlds"], record["comparisons"])
     return _verdict.verdicts({f"{name}, premise {w}": per[w] for name, per in rec["comparisons"].items()
-                              for w in WORLDS})
+                              for w in WORLDS}, gates=gates)
 
 
-def verdict_lines(record: Mapping) -> list[str]:
+def verdict_lines(record: Mapping, gates: Mapping | None = None) -> list[str]:
     """One line per comparison and world, as the notebooks print them (and the consistency test reads them
     back): ``"DW-T − T-Loss, premise on: +0.036 ± 0.009 (5 seeds, t 4.1, Holm p 0.030 over 4 comparisons):
     helps"``, then the line naming the family (:func:`vpr_nb.verdict.family_note`)."""
-    family = premise_verdicts(record)
+    family = premise_verdicts(record, gates)
     return [f"{name}: {v.text()}" for name, v in family.items()] + [_verdict.family_note(family)]
