@@ -323,3 +323,39 @@ def test_a_run_killed_with_sigkill_resumes_with_only_what_is_missing(tmp_path):
     assert [d for *_, d in (line.split() for line in clean.stdout.splitlines())] == [d for *_, d in lines]
     assert first.split()[2] == lines[0][2]               # the reused result is the bits it stored
     time.sleep(0)
+
+
+KEYS = """
+from vpr_nb.kernels import apply_in_process
+apply_in_process()
+import numpy as np
+from vpr_nb.losses import MultiSimilarityLoss
+from vpr_nb.recipe import RECIPE, FineTuneTask, Method, PlaceBatches, place_batch_labels
+from vpr_nb.samplers import CliqueBatchMaker, MixedPlaceBatches, RandomPlaceBatches
+from vpr_nb.synthetic import make_dataset
+ds = make_dataset("route", seed=0)                   # its scene holds a k-d tree of the track
+tr, va = ds.train, ds.val
+labels = place_batch_labels(tr)
+images = np.concatenate([tr.db_images, tr.q_images])
+utm = np.concatenate([tr.db_utm, tr.q_utm])
+desc = np.random.default_rng(0).normal(size=(labels.max() + 1, 4)).astype(np.float32)
+clique = CliqueBatchMaker(images, utm, labels, 4, 2, same_place_threshold=6.0, similar_groups=3, group_descriptors=desc)
+half = RandomPlaceBatches(labels, 4, 2, 2, each_place_once=False)
+method = Method("mix", "gem", MultiSimilarityLoss(), batches=PlaceBatches("mix", images, MixedPlaceBatches([half, clique], [0, 0]), (4, 4)))
+print(FineTuneTask(method, tr, va, RECIPE, 0, 1e-3).key())
+"""
+
+
+def test_a_task_has_the_same_key_in_every_process(tmp_path):
+    """The key is a content digest: the route world's scene (with a k-d tree) and a clique batch maker give the
+    same key in two fresh processes, so a run started again finds what the first one stored."""
+    import subprocess
+    import sys
+
+    from vpr_nb.kernels import pinned_environ
+
+    script = tmp_path / "keys.py"
+    script.write_text(KEYS)
+    keys = [subprocess.run([sys.executable, str(script)], env=pinned_environ(), capture_output=True, text=True,
+                           timeout=300, check=True).stdout.strip() for _ in range(2)]
+    assert keys[0] == keys[1] and len(keys[0]) == 64

@@ -113,7 +113,10 @@ def _value_digest(h, value, seen=None) -> None:
     elif hasattr(value, "__dict__"):
         h.update(type(value).__qualname__.encode())
         _value_digest(h, vars(value), seen)
-    else:                      # e.g. a k-d tree: its pickled state (its arrays), not its repr (an address)
+    elif isinstance(getattr(value, "data", None), np.ndarray):   # a k-d tree: the points it was built on (its
+        h.update(type(value).__qualname__.encode())              # pickle holds uninitialised bytes)
+        _value_digest(h, value.data, seen)
+    else:                      # its pickled state, never its repr (an address)
         try:
             h.update(pickle.dumps(value, protocol=4))
         except Exception:      # noqa: BLE001 - unpicklable: its type is all a key can hold of it
