@@ -1,10 +1,23 @@
-"""The control gate through vpr_nb.results' one-comparison wrappers (notebooks 04 and 06): a paired verdict only over a
-baseline that beats its starting point, by the rule of vpr_nb.verdict (tests/test_verdict.py tests the rule)."""
+"""The control gate (vpr_nb.verdict): a paired verdict only over a baseline that beats its starting point
+(tests/test_verdict.py tests the rule itself)."""
 import math
 
 import pytest
 
-from vpr_nb.results import control_gate, gated_verdict
+from vpr_nb import verdict as V
+
+
+def control_gate(baseline_vals, start_vals, baseline="baseline", start="its starting point"):
+    gate = V.control_gate(baseline_vals, start_vals, baseline, start)
+    return gate.passed, gate.numbers()
+
+
+def gated_verdict(a_vals, b_vals, start_vals, a="A", b="B", start="its starting point"):
+    """One comparison over a gated baseline, as the notebooks print it."""
+    name = f"{a} − {b}"
+    diffs = V.paired_differences(a_vals, b_vals, f"{a} (method values)", f"{b} (baseline values)")
+    v = V.verdicts({name: diffs}, gates={name: V.control_gate(b_vals, start_vals, b, start)})[name]
+    return f"{name}: {v.text()}" + (f" [control: {v.gate.text()}]" if v.word != "inconclusive" else "")
 
 START = [0.70, 0.71, 0.70, 0.72, 0.70]                  # the epoch-0 weights, per seed
 GOOD_BASE = [0.80, 0.81, 0.79, 0.82, 0.80]              # the baseline fine-tune: +0.10, t 49
@@ -26,7 +39,7 @@ def test_control_fails_below_or_close_to_its_start_and_on_one_seed():
 def test_verdict_only_over_a_working_control():
     better = [0.85, 0.87, 0.84, 0.88, 0.85]
     v = gated_verdict(better, GOOD_BASE, START, "DW-T", "T", "frozen")
-    assert v.startswith("DW-T − T = +0.054 ± 0.002 (5 seeds, t 22.0, p < 0.001): helps [control: T − frozen = +0.098")
+    assert v.startswith("DW-T − T: +0.054 ± 0.002 (5 seeds, t 22.0, p < 0.001): helps [control: T − frozen = +0.098")
     worse = [0.75, 0.77, 0.74, 0.78, 0.75]
     assert ": hurts [control:" in gated_verdict(worse, GOOD_BASE, START, "DW-T", "T")
     close = [0.80, 0.82, 0.79, 0.81, 0.80]
@@ -36,7 +49,7 @@ def test_verdict_only_over_a_working_control():
 def test_a_failing_control_makes_the_verdict_inconclusive_and_names_the_reference():
     base = [0.66, 0.70, 0.64, 0.68, 0.62]               # the baseline ends below its start (as 03's T-Loss once did)
     v = gated_verdict([0.30, 0.31, 0.30, 0.29, 0.30], base, START, "DW-T", "T", "frozen backbone + GeM")
-    assert v == "DW-T vs T: inconclusive: T does not beat frozen backbone + GeM (-0.046 ± 0.012, 5 seeds)"
+    assert v == "DW-T − T: inconclusive: T does not beat frozen backbone + GeM (-0.046 ± 0.012, 5 seeds)"
 
 
 def test_nan_and_mismatched_seeds_are_refused():
@@ -48,7 +61,7 @@ def test_nan_and_mismatched_seeds_are_refused():
         control_gate(GOOD_BASE, float("nan"))
     with pytest.raises(ValueError, match="one value of 'its starting point' per seed of 'baseline'"):
         control_gate(GOOD_BASE, START[:3])
-    with pytest.raises(ValueError, match="same seeds"):
+    with pytest.raises(ValueError, match="compare the same seeds"):
         gated_verdict(GOOD_BASE[:4], GOOD_BASE, START)
     with pytest.raises(ValueError, match="is not a number"):
         control_gate(["a"], [0.1])

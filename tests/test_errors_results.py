@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from vpr_nb import results
+from vpr_nb import results, verdict
 
 
 @pytest.fixture()
@@ -46,15 +46,15 @@ def test_a_malformed_results_file_names_the_file(saved, mutate, match):
 
 def test_a_nan_seed_never_reaches_a_verdict():
     with pytest.raises(ValueError, match=r"NetVLAD, seed 3: the value is nan, not a finite number"):
-        results.paired_verdict([0.5, 0.6, 0.55], [0.4, math.nan, 0.45], "GeM", "NetVLAD", seeds=[0, 3, 4])
+        verdict.paired_differences([0.5, 0.6, 0.55], [0.4, math.nan, 0.45], "GeM", "NetVLAD", seeds=[0, 3, 4])
     with pytest.raises(ValueError, match=r"GeM, entry 1: the value is inf"):
-        results.paired_verdict([0.5, math.inf], [0.4, 0.3], "GeM", "NetVLAD")
+        verdict.paired_differences([0.5, math.inf], [0.4, 0.3], "GeM", "NetVLAD")
     with pytest.raises(ValueError, match=r"mean_std values, entry 2: the value is nan"):
         results.mean_std([0.5, 0.6, float("nan")])
     with pytest.raises(ValueError, match=r"R@1 of SALAD, entry 0: 'n/a' is not a number"):
         results.mean_std(["n/a"], "R@1 of SALAD")
     with pytest.raises(ValueError, match="seeds names 2 seeds but there are 1 values"):
-        results.paired_verdict([0.5], [0.4], seeds=[0, 1])
+        verdict.paired_differences([0.5], [0.4], seeds=[0, 1])
 
 
 GOOD = {"rows": {"T-Loss": {"R@1": [0.5, 0.6, 0.7], "best epoch": [3, 0, 12], "start R@1": [0.4, 0.4, 0.4]}},

@@ -69,21 +69,10 @@ def test_backbone_fingerprint_follows_tensors_not_file_bytes(tmp_path):
     assert results.backbone_fingerprint(tmp_path / "changed.pt") != results.backbone_fingerprint()
 
 
-def test_mean_std_and_paired_verdict():
+def test_mean_std():
     m, sd = results.mean_std([1.0, 2.0, 3.0])
     assert m == 2.0 and math.isclose(sd, 1.0)
     assert results.mean_std([4.0]) == (4.0, 0.0)
-    # one comparison alone (vpr_nb.verdict: a paired t test, n − 1 df, no family to correct over)
-    assert results.paired_verdict([0.8, 0.81, 0.82], [0.5, 0.52, 0.5], "A", "B") == \
-        "A − B = +0.303 ± 0.009 (3 seeds, t 34.4, p < 0.001): helps"
-    assert results.paired_verdict([0.5, 0.52, 0.5], [0.8, 0.81, 0.82], "A", "B").endswith(": hurts")
-    assert results.paired_verdict([0.5, 0.6, 0.4], [0.5, 0.4, 0.6], "A", "B").endswith(": no measurable effect")
-    # a mis-ordering probability: lower is better, so the larger values lose
-    assert results.paired_verdict([0.3, 0.31, 0.32], [0.1, 0.12, 0.1], "A", "B", lower_is_better=True).endswith(": hurts")
-    assert results.paired_verdict([0.1, 0.12, 0.1], [0.3, 0.31, 0.32], "A", "B", lower_is_better=True).endswith(": helps")
-    assert "1 seed, no spread to test" in results.paired_verdict([0.5], [0.4])
-    with pytest.raises(ValueError, match="one value per seed on both sides"):
-        results.paired_verdict([0.5], [0.4, 0.3])
     with pytest.raises(ValueError, match="at least one"):
         results.mean_std([])
 

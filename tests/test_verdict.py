@@ -137,3 +137,20 @@ def test_paired_differences():
 def test_bad_input_is_refused_with_what_to_do(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_one_comparison_alone_as_a_sentence():
+    """A comparison alone (a family of one: no correction), as 04's and 06's tables once printed each line."""
+    from vpr_nb import verdict as V
+
+    def said(a, b, **kw):
+        return V.verdict(V.paired_differences(a, b, "A", "B"), **kw).text()
+    assert said([0.8, 0.81, 0.82], [0.5, 0.52, 0.5]) == "+0.303 ± 0.009 (3 seeds, t 34.4, p < 0.001): helps"
+    assert said([0.5, 0.52, 0.5], [0.8, 0.81, 0.82]).endswith(": hurts")
+    assert said([0.5, 0.6, 0.4], [0.5, 0.4, 0.6]).endswith(": no measurable effect")
+    # a mis-ordering probability: lower is better, so the larger values lose
+    assert said([0.3, 0.31, 0.32], [0.1, 0.12, 0.1], lower_is_better=True).endswith(": hurts")
+    assert said([0.1, 0.12, 0.1], [0.3, 0.31, 0.32], lower_is_better=True).endswith(": helps")
+    assert "1 seed, no spread to test" in said([0.5], [0.4])
+    with pytest.raises(ValueError, match="compare the same seeds"):
+        said([0.5], [0.4, 0.3])

@@ -10,8 +10,7 @@ notebook's (a changed epoch count, lr, seed list, …), a file computed with oth
 course-backbone weights (compared by :func:`backbone_fingerprint`), and a file computed on another
 synthetic world (compared by :func:`world_fingerprints`), so nbval fails and a result can never go
 stale silently: re-run ``make reproduce`` (or that notebook with ``PROFILE = "reproduce"``) and commit.
-Verdicts follow the course's one rule (:mod:`vpr_nb.verdict`); :func:`paired_verdict`, :func:`control_gate` and
-:func:`gated_verdict` are its one-comparison wrappers.
+Verdicts on these numbers follow the course's one rule, :mod:`vpr_nb.verdict`.
 
 **Keys.** A results file is keyed on three things, each checked by :func:`load`:
 
@@ -45,7 +44,6 @@ from .models import read_weights
 from .pretrain import CHECKPOINT
 from .synthetic import make_config
 from .synthetic.config import OPTIONAL_CONTENT, WorldConfig
-from . import verdict
 
 
 ALLOW_DIRTY_ENV = "VPR_NB_ALLOW_DIRTY"   # =1: a trial reproduce run may save from a dirty tree
@@ -337,36 +335,6 @@ def mean_std(values, what: str = "mean_std values") -> tuple[float, float]:
     m = sum(vals) / len(vals)
     sd = math.sqrt(sum((v - m) ** 2 for v in vals) / (len(vals) - 1)) if len(vals) > 1 else 0.0
     return m, sd
-
-
-# The verdicts of notebooks 04 and 06, each comparison alone (a family of one): thin wrappers of vpr_nb.verdict, the
-# course's one rule and vocabulary. A notebook table of several comparisons calls vpr_nb.verdict.verdicts instead.
-def paired_verdict(a_vals, b_vals, a: str = "A", b: str = "B", *, seeds=None, lower_is_better: bool = False) -> str:
-    """``"a − b = +0.031 ± 0.015 (5 seeds, t 2.1, p 0.105): no measurable effect"``: one comparison, a paired
-    t test alone (:func:`vpr_nb.verdict.verdict`). NaN/inf, empty or mismatched lists raise ValueError naming
-    the method and the seed (``seeds[i]`` when given, else the position)."""
-    diffs = verdict.paired_differences(a_vals, b_vals, a, b, seeds=None if seeds is None else list(seeds))
-    return f"{a} − {b} = {verdict.verdict(diffs, lower_is_better=lower_is_better).text()}"
-
-
-def control_gate(baseline_vals, start_vals, baseline: str = "baseline",
-                 start: str = "its starting point") -> tuple[bool, str]:
-    """``(passed, "baseline − start = x ± SE (n seeds, t, one-sided p)")`` of :func:`vpr_nb.verdict.control_gate`:
-    does ``baseline`` beat ``start`` (per-seed values, or one number for every seed) by a one-sided paired t test
-    at 5 %? The text holds the numbers only; ``passed`` says whether the gate passes."""
-    gate = verdict.control_gate(baseline_vals, start_vals, baseline, start)
-    return gate.passed, gate.numbers()
-
-
-def gated_verdict(a_vals, b_vals, start_vals, a: str = "A", b: str = "B", start: str = "its starting point") -> str:
-    """:func:`paired_verdict` of ``a`` against the baseline ``b`` when ``b`` passes its control gate against
-    ``start`` (:func:`vpr_nb.verdict.control_gate`), with the gate in brackets; otherwise ``"a vs b:
-    inconclusive: b does not beat <start> (...)"``."""
-    diffs = verdict.paired_differences(a_vals, b_vals, f"{a} (method values)", f"{b} (baseline values)")
-    gate = verdict.control_gate(b_vals, start_vals, b, start)
-    if not gate.passed:
-        return f"{a} vs {b}: {gate.inconclusive()}"
-    return f"{a} − {b} = {verdict.verdict(diffs).text()} [control: {gate.text()}]"
 
 
 def print_table(rows: Mapping, title: str, label_width: int = 22, col_width: int = 24) -> None:

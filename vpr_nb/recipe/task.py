@@ -203,7 +203,7 @@ class FineTuneTask:
 class FineTuneResult:
     """One fine-tuning run: ``model`` (the selected weights), its :class:`History`, the ``lr`` it ran at and
     ``start``, the same model before any step (the epoch-0 candidate, for the control of
-    :func:`vpr_nb.results.gated_verdict`); ``seconds`` the task took where it ran and whether it came from the
+    :func:`vpr_nb.verdict.control_gate`); ``seconds`` the task took where it ran and whether it came from the
     task store (``reused``)."""
 
     method: str
