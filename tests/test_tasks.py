@@ -179,6 +179,17 @@ def test_a_stored_result_is_reused_only_under_its_whole_key(world, tmp_path, mon
     with pytest.warns(UserWarning, match="unusable"):
         fixed = run_task(FineTuneTask(Method("GeM", "gem"), tr, va, ONE, 0, 1e-3))
     assert not fixed.reused and same_weights(fixed.model, first.model)
+    # an entry that passes the store's checks but does not fit the task (a hand-written history, other weights)
+    key = task.key()
+    store = TaskStore(tmp_path)
+    tensors, data = store.get(key)
+    store.put(key, {"w": torch.zeros(3)}, data)
+    with pytest.warns(UserWarning, match="does not fit this task"):
+        refit = run_task(FineTuneTask(Method("GeM", "gem"), tr, va, ONE, 0, 1e-3))
+    assert not refit.reused and same_weights(refit.model, first.model)
+    store.put(key, tensors, {**data, "history": {"epochs": "x"}})
+    with pytest.warns(UserWarning, match="does not fit this task"):
+        assert not run_task(FineTuneTask(Method("GeM", "gem"), tr, va, ONE, 0, 1e-3)).reused
     # with the store off, the same bits
     monkeypatch.setenv(STORE_ENV, "off")
     off = run_task(FineTuneTask(Method("GeM", "gem"), tr, va, ONE, 0, 1e-3))

@@ -29,6 +29,7 @@ import pickle
 import platform
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -245,6 +246,22 @@ def _state_digest(model) -> str:
     return h.hexdigest()
 
 
+def _from_entry(task: FineTuneTask, model, start, tensors: dict, data: dict) -> FineTuneResult | None:
+    """The stored result of ``task`` on ``model`` (its start), or None with a warning when the entry's weights or
+    history do not fit (a store written by other code, or by hand): the task then trains again."""
+    fresh = copy.deepcopy(model)
+    detach(fresh.backbone)
+    try:
+        history = History.from_dict(data["history"])
+        seconds = float(data["seconds"])
+        fresh.load_state_dict(tensors)
+    except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as exc:
+        warnings.warn(f"task store: the entry of {task.label()} does not fit this task ({type(exc).__name__}); "
+                      f"it trains again", stacklevel=3)
+        return None
+    return FineTuneResult(task.method.name, task.seed, task.lr, fresh, history, start, seconds=seconds, reused=True)
+
+
 def run_task(task: FineTuneTask, *, progress: bool = False) -> FineTuneResult:
     """Run ``task`` here: from the task store (``$VPR_NB_TASK_STORE``) when it holds this key and the start this
     process builds is the one stored, else by training; a trained result is stored. Refuses to run a task
@@ -261,11 +278,9 @@ def run_task(task: FineTuneTask, *, progress: bool = False) -> FineTuneResult:
     start_digest = _state_digest(start)
     entry = store.get(task.key()) if store is not None else None
     if entry is not None and entry[1].get("start") == start_digest:
-        tensors, data = entry
-        detach(model.backbone)
-        model.load_state_dict(tensors)
-        return FineTuneResult(task.method.name, task.seed, task.lr, model, History.from_dict(data["history"]),
-                              start, seconds=float(data["seconds"]), reused=True)
+        reused = _from_entry(task, model, start, *entry)
+        if reused is not None:
+            return reused
     try:
         history = train(model, make_source(task.method, task.train, task.recipe), task.val,
                         task.recipe.train_config(task.lr, task.seed), progress=progress,
