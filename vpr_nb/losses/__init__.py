@@ -11,6 +11,8 @@ One idea per module, in the spirit of pytorch-metric-learning's ``losses/``; eve
 :mod:`~vpr_nb.losses.placebo`           the placebo of DW-T-Loss: Eq. (9) with the batch's query-positive distances
                                         permuted across its queries (:class:`PlaceboDWTripletLoss`), which keeps
                                         the weights' values and removes their ranking
+:mod:`~vpr_nb.losses.normalised`        DW-T-Loss with its weight divided by its batch mean
+                                        (:class:`BatchMeanDWTripletLoss`): the ranking without the scale
 :mod:`~vpr_nb.losses.multi_similarity`  Multi-Similarity (Wang et al., CVPR 2019), as used to train SALAD and
                                         CliqueMining through pytorch-metric-learning: :func:`multi_similarity_loss`
                                         (Eq. (6)), :func:`multi_similarity_miner` (Sec. 3.3) and
@@ -36,6 +38,9 @@ object                          paper equation  parameters                      
 :class:`MultiSimilarityLoss`    Wang Eq. (6)    ``alpha``, ``beta``, ``base``, ``miner_epsilon``  PlaceBatchSource
 ==============================  ==============  ================================================  ================
 
+:class:`BatchMeanDWTripletLoss` (Eq. (9) with the weight over its batch mean; ``sigma``, ``eps``) is a triplet-family
+object too.
+
 Every default value lives once, in the ``DEFAULT_*`` constants of its loss's module (``DEFAULT_MARGIN``,
 ``DEFAULT_SIGMA``, ``DEFAULT_EPS`` in :mod:`~vpr_nb.losses.triplet`, ``DEFAULT_MS_*`` in
 :mod:`~vpr_nb.losses.multi_similarity`), which both the functions and the classes use.
@@ -44,6 +49,7 @@ from __future__ import annotations
 
 from .infonce import LOCAL_NEGATIVES, local_infonce
 from .multi_similarity import MultiSimilarityLoss, multi_similarity_loss, multi_similarity_miner
+from .normalised import BatchMeanDWTripletLoss, batch_mean_dw_triplet_loss
 from .placebo import PlaceboDWTripletLoss, placebo_dw_triplet_loss, placebo_permutation
 from .registry import LOSSES, TRIPLET_LOSSES
 from .triplet import (
@@ -72,6 +78,7 @@ __all__ = [
     "dw_triplet_loss",
     "placebo_dw_triplet_loss",
     "placebo_permutation",
+    "batch_mean_dw_triplet_loss",
     "multi_similarity_loss",
     "multi_similarity_miner",
     "local_infonce",
@@ -82,6 +89,7 @@ __all__ = [
     "CETripletLoss",
     "DWTripletLoss",
     "PlaceboDWTripletLoss",
+    "BatchMeanDWTripletLoss",
     "MultiSimilarityLoss",
     "LOSSES",
     "TRIPLET_LOSSES",

@@ -58,7 +58,12 @@ def methods(world: str) -> list[Method]:
     """The four arms of ``world`` (``"on"`` or ``"off"``), NetVLAD-16, with that world's positives and sigma."""
     if world not in WORLDS:
         raise ValueError(f"world must be one of {sorted(WORLDS)}, got {world!r}")
-    w = WORLDS[world]
+    return world_methods(WORLDS[world])
+
+
+def world_methods(w) -> list[Method]:
+    """The four arms, NetVLAD-16, for a world ``{"positive": rule, "radius": metres, "sigma": metres}`` (also
+    :mod:`vpr_nb.onoff.dwt_control`'s worlds)."""
     batches = TripletBatches(f"triplets, {w['positive']} positive within {w['radius']:g} m", w["positive"],
                              w["radius"])
     losses = {"T-Loss": TripletLoss(margin=DEFAULT_MARGIN), "CE-Loss": CETripletLoss(),

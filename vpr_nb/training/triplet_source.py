@@ -49,7 +49,8 @@ class TripletSource:
             once per epoch = every ~580 queries of the tiny city) scale that to the tiny world.
         max_heading_diff: keep only positives facing the query's way (see ``mine_triplets``).
         neg_radius: negatives lie beyond this many metres (default: the split's evaluation radius,
-            NetVLAD's 25 m). On a densely sampled route (positives = +-1 frame) a larger radius keeps
+            NetVLAD's 25 m, or its ``train_pos_radius`` when that is larger, so that positives may lie beyond
+            the evaluation radius -- notebook 03's positive control -- and negatives still beyond them). On a densely sampled route (positives = +-1 frame) a larger radius keeps
             near-duplicates of the positive out of the negatives.
         positive: ``"best"`` (default: NetVLAD's best potential positive, nearest in descriptor space) or
             ``"random"``: one potential positive drawn uniformly at random, from a generator seeded by the
@@ -78,7 +79,8 @@ class TripletSource:
         self.cache_refresh = None if cache_refresh is None else check_int(cache_refresh, "cache_refresh")
         self.max_heading_diff = max_heading_diff
         self.positive = check_positive_rule(positive)
-        self.neg_radius = split.pos_radius if neg_radius is None else check_positive(neg_radius, "neg_radius")
+        self.neg_radius = (max(split.pos_radius, split.train_pos_radius) if neg_radius is None
+                           else check_positive(neg_radius, "neg_radius"))
         self.q, self.db = split.q_images, split.db_images
         self.positives = split.positives(split.train_pos_radius)   # per query, inside its region
         self.near = split.positives(self.neg_radius)
