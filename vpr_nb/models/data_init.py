@@ -81,7 +81,7 @@ def salad_scores_from_centroids(salad: SALAD, centroids, alpha: float) -> None:
 
 def init_salad_scores_from_kmeans(model: "VPRModel", images, centroids=None, per_image: int = 20, niter: int = 50,
                                   seed: int = 0, batch_size: int = 256,
-                                  max_images: int | None = None) -> tuple[np.ndarray, float]:
+                                  max_images: int | None = None, temperature: float = 1.0) -> tuple[np.ndarray, float]:
     """Start SALAD's score head where NetVLAD starts: from k-means centroids of the local features.
 
     Untrained, SALAD's scores are a random MLP's, near uniform and collapsed (notebook 05), while NetVLAD
@@ -92,7 +92,9 @@ def init_salad_scores_from_kmeans(model: "VPRModel", images, centroids=None, per
     (e.g. a NetVLAD start's). α is NetVLAD's (:func:`vpr_nb.aggregation.netvlad_alpha`, v1), divided by the
     mean norm of the non-zero local features: SALAD's head sees them unnormalised, so a feature of mean norm
     gets NetVLAD's logits exactly. Sets the head with :func:`salad_scores_from_centroids`; run it after
-    :func:`init_salad` (which it overrides for the score head's first 2m units). Returns
+    :func:`init_salad` (which it overrides for the score head's first 2m units). ``temperature`` > 0 divides
+    the logits (α / temperature): above 1 the start's assignment is softer (notebook 05 levels two
+    assignments' starts with it). Returns
     ``(centroids, alpha)``, the α set in the head. Deterministic for a given ``seed``.
     """
     if not isinstance(getattr(model, "aggregator", None), SALAD):
@@ -105,7 +107,7 @@ def init_salad_scores_from_kmeans(model: "VPRModel", images, centroids=None, per
         centroids = kmeans_centroids(descs, m, niter=niter, seed=seed)
     cents = as_float_matrix(centroids, "centroids", dim=model.aggregator.num_channels).astype(np.float64)
     norms = maps.transpose(0, 1).flatten(1).norm(dim=0)                  # one per position of every map
-    alpha = netvlad_alpha(cents, descs) / float(norms[norms > 0].mean())
+    alpha = netvlad_alpha(cents, descs) / float(norms[norms > 0].mean()) / check_positive(temperature, "temperature")
     salad_scores_from_centroids(model.aggregator, cents, alpha)
     return np.asarray(centroids), alpha
 

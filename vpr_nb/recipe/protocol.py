@@ -42,6 +42,8 @@ class Recipe:
     salad_standardise: bool = True
     salad_kmeans_scores: bool = False            # on: SALAD's score head from NetVLAD's k-means logits, so that
                                                  # assignments compare from one start (vpr_nb.onoff.salad)
+    salad_kmeans_temperature: float = 1.0        # those logits / this (> 1: a softer start; vpr_nb.onoff.salad_fair
+                                                 # levels Sinkhorn's start with softmax's by it)
     # optimiser (notebook 04)
     optimizer: str = "adam"
     lr: float = 1e-3                             # a run without search (e.g. a CI smoke test); also in lr_grid
@@ -79,7 +81,7 @@ class Recipe:
         check_int(self.lr_extend, "lr_extend", minimum=0)
         for name in ("margin", "weight_decay", "salad_dropout"):
             check_positive(getattr(self, name), name, allow_zero=True)
-        for name in ("lr", "gamma"):
+        for name in ("lr", "gamma", "salad_kmeans_temperature"):
             check_positive(getattr(self, name), name)
         if self.max_heading_diff is not None:
             check_positive(self.max_heading_diff, "max_heading_diff")
@@ -130,7 +132,7 @@ class Recipe:
 
 # Settings that are off by default and leave :meth:`Recipe.to_dict` alone while they are off (as
 # vpr_nb.synthetic's OPTIONAL_CONTENT leaves a world's fingerprint alone).
-OPTIONAL_SETTINGS = ("salad_kmeans_scores",)
+OPTIONAL_SETTINGS = ("salad_kmeans_scores", "salad_kmeans_temperature")
 _DEFAULTS = {f.name: f.default for f in fields(Recipe)}
 RECIPE = Recipe()
 

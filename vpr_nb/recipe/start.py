@@ -45,7 +45,8 @@ def build_start(method: Method, train_split, recipe: Recipe = RECIPE, seed: int 
             init_salad(model, train_split.db_images)
         if recipe.salad_kmeans_scores:
             init_salad_scores_from_kmeans(model, train_split.db_images, per_image=recipe.netvlad_per_image,
-                                          niter=recipe.netvlad_niter, seed=seed)
+                                          niter=recipe.netvlad_niter, seed=seed,
+                                          temperature=recipe.salad_kmeans_temperature)
     return model
 
 

@@ -37,7 +37,7 @@ _NON_NEGATIVE = ("position_jitter", "heading_jitter", "pitch_jitter", "occluder_
                  "condition_strength", "db_position_jitter", "db_heading_jitter", "street_tree_shift",
                  "tree_colour_variation", "style_colour_variation", "trees_per_frame", "track_curvature",
                  "house_yaw", "corner_remainder", "street_tree_inset", "kerb_margin", "roadside_spacing")
-_POSITIVE = ("fov", "view_distance", "block_size", "street_width", "place_spacing", "frame_spacing",
+_POSITIVE = ("distractor_height_scale", "fov", "view_distance", "block_size", "street_width", "place_spacing", "frame_spacing",
              "street_tree_spacing", "pole_spacing", "sky_radius", "split_gap", "pos_radius", "train_pos_radius")
 
 
@@ -139,6 +139,10 @@ class WorldConfig:
     car_share: float = 0.65                       # share of the occluders that are cars (the rest pedestrians)
     distractor_rate: float = 0.0                  # parked cars / pedestrians in 3-D, new at every visit (db and
                                                   # queries): mean number per 10 m of street or track (0 = none)
+    distractor_height_scale: float = 1.0          # distractors' heights x this (1: cars 1.3-1.7 m, people 1.5-1.9 m)
+    distractor_layers: int = 0                    # > 0: distractor faces get this many ray hits per column of
+                                                  # their own, so many distractors never use up the scene's
+                                                  # layers (0: they share them, as before)
     # --- splits and evaluation ---
     split_fractions: tuple[float, float, float] = (0.5, 0.2, 0.3)
     split_gap: float = 1.2                        # gap between splits, in units of pos_radius
@@ -168,6 +172,10 @@ class WorldConfig:
                              f"frame_spacing m), got {cs!r}")
         if self.condition_strength > 1:
             raise ValueError(f"condition_strength must be in [0, 1], got {self.condition_strength}")
+        if isinstance(self.distractor_layers, bool) or not isinstance(self.distractor_layers, (int, np.integer)) \
+                or self.distractor_layers < 0:
+            raise ValueError(f"distractor_layers must be a whole number >= 0 (0: distractors share the scene's ray "
+                             f"hits), got {self.distractor_layers!r}")
         for name in _COUNTS:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -207,7 +215,7 @@ class WorldConfig:
 
 # Content knobs that are off by default and leave a world's fingerprint alone while they are off.
 OPTIONAL_CONTENT = ("camera_yaw", "roadside_spacing", "roadside_distance", "roadside_height", "roadside_width",
-                    "camera_spacing", "distractor_rate")
+                    "camera_spacing", "distractor_rate", "distractor_height_scale", "distractor_layers")
 _DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldConfig)}
 
 

@@ -110,6 +110,7 @@ def _visit_boxes(cfg, plan: dict, cams: np.ndarray, rng: np.random.Generator) ->
     lo = np.where(car[:, None], car_size[:, 0], pedestrian_size[:, 0])
     hi = np.where(car[:, None], car_size[:, 1], pedestrian_size[:, 1])
     size = lo + (hi - lo) * rng.random((count, 3))                       # length, width, height
+    size[:, 2] *= cfg.distractor_height_scale
     colour = rng.uniform(*ALBEDO, (count, 3))
     turn = np.where(car, CAR_YAW_JITTER, np.pi) * rng.uniform(-1, 1, count)
     spread = rng.random(count)

@@ -145,6 +145,14 @@ def _camera_rays(cfg: WorldConfig, pos: np.ndarray, heading_deg: np.ndarray, pit
     return _Rays(pos=pos, d=d, corr=corr, tan_el=rows / f)                       # vertical: same focal
 
 
+def _nearest(t: np.ndarray, k: int) -> np.ndarray:
+    """Indices (along the last axis) of the ``k`` smallest entries of ``t``, in no particular order."""
+    k = min(k, t.shape[-1])
+    if t.shape[-1] > k:
+        return np.argpartition(t, k - 1, axis=-1)[..., :k]
+    return np.broadcast_to(np.arange(t.shape[-1]), t.shape)
+
+
 def _cast_rays(scene: Scene, cfg: WorldConfig, rays: _Rays, heading_deg: np.ndarray, layers: int,
                extra: Extension | None = None) -> _Hits:
     """Stage 1b: intersect every column ray with the vertical segments; keep the ``layers`` nearest hits.
@@ -169,11 +177,11 @@ def _cast_rays(scene: Scene, cfg: WorldConfig, rays: _Rays, heading_deg: np.ndar
     ok = ((np.abs(den) > 1e-9) & (t > NEAR_CLIP) & (t < cfg.view_distance) & (s >= 0) & (s <= 1)
           & (cand >= 0)[:, None, :])
     t = np.where(ok, t, np.inf)
-    K = min(layers, t.shape[-1])
-    if t.shape[-1] > K:
-        order = np.argpartition(t, K - 1, axis=-1)[..., :K]
+    if extra is not None and cfg.distractor_layers > 0:    # the scene's nearest hits, then the distractors' own
+        s0 = t.shape[-1] - extra.cand.shape[1]
+        order = np.concatenate([_nearest(t[..., :s0], layers), s0 + _nearest(t[..., s0:], cfg.distractor_layers)], -1)
     else:
-        order = np.broadcast_to(np.arange(t.shape[-1]), t.shape)
+        order = _nearest(t, layers)
     tk = np.take_along_axis(t, order, -1)
     sk = np.take_along_axis(s, order, -1)
     srt = np.argsort(tk, -1)
