@@ -1,0 +1,170 @@
+"""The fair-test designs' cheap parts: DW-T-Loss over its batch mean (vpr_nb.losses.normalised), triplets whose
+positive radius exceeds the evaluation radius, the positive control's worlds and recipe (vpr_nb.onoff.dwt_control),
+the distractor knobs (height, own ray hits), the k-means temperature of SALAD's start, SALAD's fair experiment
+(vpr_nb.onoff.salad_fair) and CliqueMining's near-miss world (vpr_nb.onoff.clique_nearmiss)."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from vpr_nb.losses import BatchMeanDWTripletLoss, CETripletLoss, DWTripletLoss, batch_mean_dw_triplet_loss, \
+    ce_triplet_loss, distance_weight
+from vpr_nb.onoff import clique as oc
+from vpr_nb.onoff import clique_nearmiss as nm
+from vpr_nb.onoff import dwt, dwt_control
+from vpr_nb.onoff import salad_fair as sf
+from vpr_nb.recipe import RECIPE, Recipe, TripletBatches, build_start
+from vpr_nb.results import world_fingerprints
+from vpr_nb.synthetic import make_config, make_dataset
+from vpr_nb.synthetic.distractors import place_distractors
+
+pytestmark = pytest.mark.usefixtures("one_thread")   # tests/conftest.py
+
+
+def _triplets(b=6, m=3, d=8, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    q, p, n = torch.randn(b, d, generator=g), torch.randn(b, d, generator=g), torch.randn(b, m, d, generator=g)
+    return q, p, n
+
+
+def test_batch_mean_dwt_keeps_the_ranking_and_sets_the_mean_weight_to_one():
+    q, p, n = _triplets()
+    geo = torch.tensor([0.5, 2.0, 4.0, 6.0, 8.0, 9.5])
+    loss = batch_mean_dw_triplet_loss(q, p, n, geo, sigma=18.0)
+    w = distance_weight(geo, 18.0)
+    # per-query terms: DW-T's divided by the batch's mean weight
+    assert torch.allclose(loss, DWTripletLoss(sigma=18.0)(q, p, n, geo) / w.mean(), rtol=1e-6)
+    # equal distances: every weight is 1, so the loss is CE-Loss exactly
+    same = torch.full((6,), 3.0)
+    assert torch.allclose(BatchMeanDWTripletLoss(sigma=800.0)(q, p, n, same), CETripletLoss()(q, p, n), rtol=1e-6)
+    # at the paper's sigma = 800 m within 10 m the weights differ by < 2 %: the loss is CE-Loss to within 2 %
+    assert float(batch_mean_dw_triplet_loss(q, p, n, geo, sigma=800.0) / ce_triplet_loss(q, p, n)) == \
+        pytest.approx(1.0, abs=0.02)
+    # and DW-T-Loss is about 9 times CE-Loss there: the step the normalised loss removes
+    assert float(DWTripletLoss(sigma=800.0)(q, p, n, geo) / ce_triplet_loss(q, p, n)) > 8.5
+
+
+def test_batch_mean_dwt_refuses_a_batch_whose_mean_weight_is_not_positive():
+    q, p, n = _triplets(b=2)
+    with pytest.raises(ValueError, match="not positive"):
+        batch_mean_dw_triplet_loss(q, p, n, torch.tensor([30.0, 40.0]), sigma=18.0)
+    with pytest.raises(ValueError, match="sigma"):
+        BatchMeanDWTripletLoss(sigma=0.0)
+    with pytest.raises(ValueError):
+        BatchMeanDWTripletLoss()(q, p, n)                      # no distances
+
+
+@pytest.fixture(scope="module")
+def city_train():
+    return make_dataset("city", seed=0, splits=("train",)).train
+
+
+def test_positives_beyond_the_evaluation_radius_push_the_negatives_beyond_them(city_train):
+    assert city_train.pos_radius == 25.0
+    src = TripletBatches("t", "random", 40.0)(city_train, RECIPE, None)
+    assert src.split.train_pos_radius == 40.0 and src.neg_radius == 40.0
+    near = TripletBatches("t", "random", 15.0)(city_train, RECIPE, None)
+    assert near.neg_radius == 25.0                                         # as before: the evaluation radius
+
+
+def test_the_positive_control_and_its_twin():
+    assert dwt_control.WORLDS["on"] == {"positive": "random", "radius": 40.0, "sigma": 40.0}
+    assert dwt_control.WORLDS["off"] == dwt.WORLDS["off"]
+    r = dwt_control.RECIPE_CONTROL
+    assert (r.initial_candidate, r.patience, r.search_seeds) == (False, 6, 3)
+    assert dataclasses.replace(r, initial_candidate=True, patience=4, search_seeds=3) == RECIPE
+    # sigma 40 m: never a negative weight on a positive within 40 m, and a wrong (beyond 25 m) one weighs less
+    w = distance_weight(np.array([5.0, 25.0, 40.0]), 40.0)
+    assert w[0] == pytest.approx(3.89, abs=0.01) and w[1] == pytest.approx(0.52, abs=0.01) and w[2] == 0.0
+    assert [m.name for m in dwt_control.methods("on")] == dwt_control.EXPERIMENT["arms"]
+    assert dwt_control.normalised_method().name == dwt_control.NORMALISED
+    with pytest.raises(ValueError, match="world must be one of"):
+        dwt_control.methods("ideal")
+
+
+def test_the_control_is_gated_on_its_twin():
+    arms = {"on": {"T-Loss": {"R@1": [0.4, 0.41, 0.39], "start R@1": [0.6, 0.6, 0.6]}},
+            "off": {"T-Loss": {"R@1": [0.70, 0.72, 0.71], "start R@1": [0.60, 0.61, 0.60]}}}
+    gates = dwt_control.gates(arms)
+    assert set(gates) == {"on", "off"} and all(g.passed for g in gates.values())
+    assert gates["on"].baseline == "T-Loss, premise off"
+    arms["off"]["T-Loss"]["R@1"] = [0.5, 0.5, 0.52]
+    assert not any(g.passed for g in dwt_control.gates(arms).values())
+
+
+def test_distractor_knobs_are_optional_content_and_validated():
+    base = make_config("city")
+    assert make_config("city", distractor_height_scale=1.0, distractor_layers=0).fingerprint() == base.fingerprint()
+    assert make_config("city", distractor_layers=4).fingerprint() != base.fingerprint()
+    for bad in ({"distractor_layers": -1}, {"distractor_layers": 1.5}, {"distractor_layers": True},
+                {"distractor_height_scale": 0.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            make_config("city", **bad)
+
+
+def test_the_height_knob_scales_the_boxes_and_own_layers_keep_the_facades():
+    ds = make_dataset("city", seed=2, splits=("test",), distractor_rate=16.0)
+    scene, pos = ds.extra["scene"], ds.test.db_utm[:40]
+    visits = np.arange(len(pos))
+    low = place_distractors(make_config("city", distractor_rate=16.0), scene, pos, visits, 2, 0)
+    tall = place_distractors(make_config("city", distractor_rate=16.0, distractor_height_scale=3.0), scene, pos,
+                             visits, 2, 0)
+    assert np.allclose(tall.z1, 3 * low.z1) and np.array_equal(tall.a, low.a)
+    shares = {}
+    for layers in (0, 4):
+        t = make_dataset("city", seed=2, splits=("test",), labels=True, distractor_rate=16.0,
+                         distractor_height_scale=3.0, distractor_layers=layers).test
+        lab = np.concatenate([t.db_labels, t.q_labels])
+        shares[layers] = {k: float(np.mean(lab == i)) for i, k in enumerate(("object", "ground", "skyline", "sky"))}
+    plain = make_dataset("city", seed=2, splits=("test",), labels=True).test
+    sky = float(np.mean(np.concatenate([plain.db_labels, plain.q_labels]) == 3))
+    assert shares[0]["sky"] > shares[4]["sky"] + 0.005   # sharing 4 ray hits, facades behind distractors turn to sky
+    assert shares[4]["sky"] <= sky                  # with their own hits they do not
+    assert shares[4]["object"] > shares[0]["object"]
+
+
+def test_the_kmeans_temperature_divides_the_start_logits(city_train):
+    method = sf.methods()[0][0]
+    r1 = dataclasses.replace(RECIPE, salad_kmeans_scores=True)
+    one, two = (build_start(method, city_train, dataclasses.replace(r1, salad_kmeans_temperature=t), seed=0)
+                for t in (1.0, 2.0))
+    m = one.aggregator.num_clusters
+    a, b = one.aggregator.score[0].weight[:2 * m], two.aggregator.score[0].weight[:2 * m]
+    assert torch.allclose(a, 2 * b, rtol=1e-5)
+    assert "salad_kmeans_temperature" not in r1.to_dict()              # off by default: recipe keys unchanged
+    with pytest.raises(ValueError, match="salad_kmeans_temperature"):
+        Recipe(salad_kmeans_temperature=0.0)
+
+
+def test_salads_fair_worlds_arms_and_dustbin_comparisons():
+    off, on = sf.world_specs("off"), sf.world_specs("on")
+    assert on["train"]["overrides"] == sf.ON and "overrides" not in off["train"]
+    prints = world_fingerprints(sf.EXPERIMENT)
+    roles = {k.split(" ", 1)[1] for k in prints}
+    assert len(prints) == 8 and all(prints[f"worlds.on {r}"]["fingerprint"] != prints[f"worlds.off {r}"]["fingerprint"]
+                                    for r in roles)
+    (sk, r_sk), (sm, r_sm) = sf.methods()
+    assert (sk.aggregator_kwargs["assignment"], sm.aggregator_kwargs["assignment"]) == ("sinkhorn", "softmax")
+    assert (r_sk.salad_kmeans_temperature, r_sm.salad_kmeans_temperature) == (4.0, 14.0)
+    assert sk.batches == "places" and (r_sk.patience, r_sk.max_epochs, r_sk.search_seeds) == (6, 40, 3)
+    d, o, auc = "dustbin share, distractor", "dustbin share, object", "kept-mass AUC"
+    out = sf.dustbin_comparisons({d: [0.9, 0.95], o: [0.8, 0.8], auc: [0.7, 0.72]},
+                                 {d: [0.85, 0.85], o: [0.8, 0.8], auc: [0.75, 0.7]})
+    assert out == {"distractor − object, trained": [0.1, 0.15], "distractor − object, trained − start": [0.05, 0.1],
+                   "kept-mass AUC, trained − start": [-0.05, 0.02]}
+    assert list(sf.dustbin_comparisons({o: [0.8], auc: [0.7]}, {o: [0.8], auc: [0.6]})) == \
+        ["kept-mass AUC, trained − start"]
+    with pytest.raises(ValueError, match="world must be one of"):
+        sf.world_specs("half")
+
+
+def test_the_near_miss_world_is_07s_route_four_times_denser_and_gated():
+    assert nm.WORLD["overrides"] == {**oc.ROUTE, "camera_spacing": 0.25}
+    assert nm.ARMS == ("sparse + dense random", "sparse + dense cliques") and len(nm.SEEDS) >= 8
+    res = {"arms": {nm.ARMS[0]: {"R@1": [0.85, 0.86, 0.84]}}, "frozen": {"R@1": 0.816},
+           "comparisons": {nm.COMPARISON: [0.01, 0.012, 0.011]}}
+    v = nm.verdict_of(res)
+    assert v.word == "helps" and v.gate.passed
+    res["arms"][nm.ARMS[0]]["R@1"] = [0.80, 0.81, 0.80]
+    assert nm.verdict_of(res).word == "inconclusive"
