@@ -87,8 +87,9 @@ def test_the_control_is_gated_on_its_twin():
     arms = {"on": {"T-Loss": {"R@1": [0.4, 0.41, 0.39], "start R@1": [0.6, 0.6, 0.6]}},
             "off": {"T-Loss": {"R@1": [0.70, 0.72, 0.71], "start R@1": [0.60, 0.61, 0.60]}}}
     gates = dwt_control.gates(arms)
-    assert set(gates) == {"on", "off"} and all(g.passed for g in gates.values())
-    assert gates["on"].baseline == "T-Loss, premise off"
+    assert set(gates) == {f"{a} − {b}, premise {w}" for a, b in dwt_control.COMPARISONS for w in ("on", "off")}
+    assert all(g.passed for g in gates.values()) and gates["DW-T-Loss − T-Loss, premise on"].baseline == \
+        "T-Loss, premise off"
     arms["off"]["T-Loss"]["R@1"] = [0.5, 0.5, 0.52]
     assert not any(g.passed for g in dwt_control.gates(arms).values())
 

@@ -13,13 +13,16 @@ import pytest
 from vpr_nb.premise.record import (paired_differences, premise_record, premise_verdicts, record_problems,
                                    verdict_lines)
 from vpr_nb.onoff import clique as onoff_clique
+from vpr_nb.onoff import dwt_control, salad_fair
 from vpr_nb.verdict import WORDS as VERDICTS, gap
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "notebooks" / "results"
 # premise results file -> the stored notebook that shows it
 PREMISE_FILES = {"03_premise.json": "03_distance_ranking_weighted_loss.ipynb",
+                 "03_control.json": "03_distance_ranking_weighted_loss.ipynb",
                  "05_premise.json": "05_salad.ipynb",
+                 "05_fair.json": "05_salad.ipynb",
                  "07_premise.json": "07_clique_mining.ipynb"}
 
 
@@ -139,12 +142,29 @@ def _stored(results_file):
         pytest.skip(f"{results_file} is not committed yet")
     results = json.loads(path.read_text(encoding="utf-8"))["results"]
     nb = nbformat.read(ROOT / "notebooks" / PREMISE_FILES[results_file], as_version=4)
-    return results["premise"], _outputs(nb), "\n".join(c.source for c in nb.cells if c.cell_type == "markdown"), \
+    return results["premise"], _outputs(nb), _scope(nb, results_file.removesuffix(".json")), \
         GATES.get(results_file, lambda _results: None)(results)
 
 
+def _scope(nb, stem: str) -> str:
+    """The markdown that reads the results file ``stem``: from the code cell that loads it up to the next code
+    cell that loads another results file (a notebook with two premise files states each one's verdicts there)."""
+    loads = re.compile(r"results\.load\(\s*[\"']([\w-]+)[\"']")
+    inside, text = False, []
+    for cell in nb.cells:
+        if cell.cell_type == "code":
+            found = loads.findall(cell.source)
+            if found:
+                inside = stem in found
+        elif inside:
+            text.append(cell.source)
+    return "\n".join(text)
+
+
 # the premise files whose notebook gates a comparison on its fine-tuned baseline (07: the paper's comparison)
-GATES = {"07_premise.json": onoff_clique.premise_gates}
+GATES = {"07_premise.json": onoff_clique.premise_gates,
+         "03_control.json": lambda results: dwt_control.gates(results["arms"]),
+         "05_fair.json": salad_fair.gates}
 
 
 @pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
@@ -156,7 +176,14 @@ def test_stored_premise_records_and_their_verdicts(results_file):
 
 
 def test_every_premise_file_is_checked():
-    assert {p.name for p in RESULTS.glob("*_premise.json")} <= set(PREMISE_FILES)
+    with_record = {p.name for p in RESULTS.glob("*.json") if "premise" in json.loads(p.read_text("utf-8"))["results"]}
+    assert with_record <= set(PREMISE_FILES)
+
+
+def test_each_premise_file_is_read_where_its_notebook_loads_it():
+    nb = nbformat.read(ROOT / "notebooks" / PREMISE_FILES["07_premise.json"], as_version=4)
+    scope = _scope(nb, "07_premise")
+    assert "premise on" in scope and scope not in _scope(nb, "07_probes")
 
 
 def test_a_flipped_word_is_caught():

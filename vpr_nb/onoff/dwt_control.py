@@ -100,11 +100,12 @@ def premise_values(train_split, seed: int = 0) -> dict:
 
 
 def gates(arms: Mapping) -> dict:
-    """The protocol's gate for both worlds' comparisons: T-Loss beats its start in the premise-off twin
+    """The protocol's gate for every comparison in both worlds (``{"<comparison>, premise <world>": Gate}``, as
+    :func:`vpr_nb.premise.record.verdict_lines` takes them): T-Loss beats its start in the premise-off twin
     (with wrong positives T-Loss may end below its start by design)."""
     off = arms["off"]["T-Loss"]
     gate = control_gate(off["R@1"], off["start R@1"], "T-Loss, premise off", "its start")
-    return {world: gate for world in WORLDS}
+    return {f"{a} − {b}, premise {w}": gate for a, b in COMPARISONS for w in WORLDS}
 
 
 def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=None,
