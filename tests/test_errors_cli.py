@@ -280,7 +280,7 @@ def test_a_run_writes_step_and_epoch_csvs_and_a_short_summary(tmp_path, capsys):
     stdout = capsys.readouterr().out
     summary = stdout[:stdout.index("\n{")].splitlines()
     assert len(summary) <= 15 and summary[0].startswith("synthetic-city-triplet -> ")
-    assert any("train: epochs=2, step_size=1" in line for line in summary)
+    assert any("train: epochs=2, lr=0.05, step_size=1" in line for line in summary)   # the preset's lr, notebook 02's
     assert any("2 epochs x 5 = 10 optimiser steps" in line for line in summary)
     assert C.RunConfig.from_dict(json.loads((out / "config.json").read_text())) == C.resolve(
         "synthetic-city-triplet", [a for a in tiny(epochs=2) if "=" in a])          # the full config

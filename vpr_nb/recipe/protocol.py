@@ -8,6 +8,7 @@ from .._checks import check_int, check_positive
 from ..aggregation import AGGREGATOR_NAMES
 from ..feature_cache import CACHE_DTYPES
 from ..training import OPTIMIZERS, TrainConfig
+from ..training.config import DEFAULT_LR, train_config_from
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,8 @@ class Recipe:
                                                  # levels Sinkhorn's start with softmax's by it)
     # optimiser (notebook 04)
     optimizer: str = "adam"
-    lr: float = 1e-3                             # a run without search (e.g. a CI smoke test); also in lr_grid
+    lr: float = DEFAULT_LR                       # 1e-3 (vpr_nb.training.config): a run without search (e.g. a
+                                                 # CI smoke test); also in lr_grid
     weight_decay: float = 1e-3
     step_size: int = 5
     gamma: float = 0.5
@@ -124,10 +126,19 @@ class Recipe:
         return {}
 
     def train_config(self, lr: float, seed: int) -> TrainConfig:
-        """The :class:`vpr_nb.training.TrainConfig` of one run of this recipe."""
-        return TrainConfig(epochs=self.max_epochs, optimizer=self.optimizer, lr=lr, weight_decay=self.weight_decay,
-                           step_size=self.step_size, gamma=self.gamma, seed=seed, ns=self.ns, restore_best=True,
-                           initial_candidate=self.initial_candidate, patience=self.patience, device="cpu")
+        """The :class:`vpr_nb.training.TrainConfig` of one run of this recipe at ``lr`` from ``seed``: every
+        TrainConfig field the recipe has by name (``optimizer``, ``weight_decay``, ``step_size``, ``gamma``,
+        ``ns``, ``initial_candidate``, ``patience``), ``epochs`` = ``max_epochs``, and :data:`RUN_TRAINING`;
+        the fields of :data:`TRAINCONFIG_DEFAULTS` keep TrainConfig's defaults."""
+        return train_config_from(self, epochs=self.max_epochs, lr=lr, seed=seed, **RUN_TRAINING)
+
+
+# How Recipe.train_config fills the TrainConfig fields that are not the recipe's by name, each on purpose
+# (tests/test_train_config.py checks that every TrainConfig field is the recipe's by name or listed here):
+# epochs is max_epochs, lr and seed are the run's, these are fixed, and these keep TrainConfig's defaults
+# (the recipe has no such setting: momentum 0.9 where a recipe picks SGD, StepLR, no AMP on the CPU).
+RUN_TRAINING = {"restore_best": True, "device": "cpu"}
+TRAINCONFIG_DEFAULTS = ("momentum", "scheduler", "linear_end_factor", "linear_steps", "amp")
 
 
 # Settings that are off by default and leave :meth:`Recipe.to_dict` alone while they are off (as

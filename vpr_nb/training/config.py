@@ -1,11 +1,15 @@
-"""The hyper-parameters of one training run: :class:`TrainConfig` and its optimiser and scheduler choices.
+"""The hyper-parameters of one training run: :class:`TrainConfig`, its optimiser and scheduler choices, and
+:func:`train_config_from`, the one way a TrainConfig is made from another configuration.
 
-Defaults follow DW-T-Loss / NetVLAD: SGD (momentum 0.9, weight decay 1e-3) and StepLR(5, 0.5)
-(:mod:`vpr_nb.training.optim` builds them).
+Defaults follow DW-T-Loss / NetVLAD: SGD at :data:`DEFAULT_LR` (1e-3; momentum 0.9, weight decay 1e-3) and
+StepLR(5, 0.5) (:mod:`vpr_nb.training.optim` builds them). :data:`DEFAULT_LR` is the package's only
+learning-rate default: :class:`TrainConfig`, the ``train`` section of a run config (:mod:`vpr_nb.config`, whose
+section *is* a TrainConfig) and :class:`vpr_nb.recipe.Recipe` take it from here; a preset or a notebook that
+trains at another rate sets ``lr`` itself.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, is_dataclass
 
 import numpy as np
 
@@ -14,15 +18,16 @@ from .._checks import check_int, check_positive
 
 OPTIMIZERS = ("sgd", "adam", "adamw")
 SCHEDULERS = ("step", "linear")
+DEFAULT_LR = 1e-3    # the one learning-rate default: NetVLAD's SGD rate for VGG16 and notebook 04's Adam rate
 
 
 @dataclass
 class TrainConfig:
-    """Hyper-parameters of :func:`train` (defaults: DW-T-Loss / NetVLAD, scaled to the tiny world)."""
+    """Hyper-parameters of :func:`train` (defaults: DW-T-Loss / NetVLAD; ``lr``: :data:`DEFAULT_LR`)."""
 
     epochs: int = 10
     optimizer: str = "sgd"
-    lr: float = 0.05                 # NetVLAD used 1e-3 for VGG16; 0.05 suits the small CNN + mean-per-query loss
+    lr: float = DEFAULT_LR           # 1e-3; notebook 02 and the synthetic-city presets set 0.05 (the small CNN)
     momentum: float = 0.9
     weight_decay: float = 1e-3
     scheduler: str = "step"          # "step": StepLR per epoch; "linear": LinearLR per optimiser step
@@ -61,3 +66,19 @@ class TrainConfig:
         self.ns = tuple(check_int(n, "ns entry") for n in self.ns)
         if not self.ns:
             raise ValueError("ns must list at least one N for Recall@N, e.g. (1, 5, 10)")
+
+
+def train_config_from(settings, **chosen) -> TrainConfig:
+    """The :class:`TrainConfig` of a run described by ``settings``, a dataclass instance (e.g. a
+    :class:`vpr_nb.recipe.Recipe`): every TrainConfig field that ``settings`` has by name, then the fields in
+    ``chosen`` (set on purpose; they win), TrainConfig's defaults for the rest. A run config's ``train``
+    section is itself a TrainConfig (``train_config_from(cfg.train) == cfg.train``)."""
+    if not is_dataclass(settings) or isinstance(settings, type):
+        raise ValueError(f"settings must be a dataclass instance (e.g. a Recipe or a TrainConfig), got "
+                         f"{type(settings).__name__}; pass the other values as keyword arguments")
+    names = [f.name for f in fields(TrainConfig)]
+    unknown = sorted(set(chosen) - set(names))
+    if unknown:
+        raise ValueError(f"unknown TrainConfig field(s) {unknown}; known fields: {', '.join(names)}")
+    own = {f.name for f in fields(settings)}
+    return TrainConfig(**{n: getattr(settings, n) for n in names if n in own and n not in chosen}, **chosen)
