@@ -16,7 +16,8 @@ A source builds batches; the loss object it is given holds the loss's parameters
 
 ==============================================  ================================================================
 :mod:`~vpr_nb.training.config`                  :class:`TrainConfig` (defaults: DW-T-Loss / NetVLAD, SGD +
-                                                StepLR), :data:`OPTIMIZERS`, :data:`SCHEDULERS`
+                                                StepLR), :data:`DEFAULT_LR` (the package's one lr default),
+                                                :func:`train_config_from`, :data:`OPTIMIZERS`, :data:`SCHEDULERS`
 :mod:`~vpr_nb.training.history`                 :class:`History`: per-epoch loss, collapsed loss, mean cosine,
                                                 lr, validation Recall@N, the selected epoch
 :mod:`~vpr_nb.training.triplet_source`          :class:`TripletSource` (NetVLAD triplets, triplet-family losses)
@@ -51,7 +52,7 @@ from __future__ import annotations
 from ..evaluation import mean_pairwise_cosine  # re-exported: the notebooks import it from here
 from .checkpoints import (EXTENDABLE, RUN_HINT, check_resume, config_changes, load_checkpoint, load_weights,
                           resume_state, save_checkpoint, save_epoch_checkpoints, training_state)
-from .config import OPTIMIZERS, SCHEDULERS, TrainConfig
+from .config import DEFAULT_LR, OPTIMIZERS, SCHEDULERS, TrainConfig, train_config_from
 from .device import DeviceSetup, amp_dtype, distributed_rank, resolve_device, setup_device, unwrap_ddp, wrap_ddp
 from .divergence import NotFinite
 from .interruption import TrainingInterrupted
@@ -61,7 +62,7 @@ from .optim import EPOCH_SCHEDULERS, SCHEDULER_STEPS, make_optimizer, make_sched
 from .place_source import PlaceBatchSource
 from .triplet_source import TripletSource
 
-__all__ = ["TrainConfig", "OPTIMIZERS", "SCHEDULERS", "History", "TripletSource", "PlaceBatchSource",
+__all__ = ["TrainConfig", "DEFAULT_LR", "train_config_from", "OPTIMIZERS", "SCHEDULERS", "History", "TripletSource", "PlaceBatchSource",
            "save_checkpoint", "load_checkpoint", "load_weights", "RUN_HINT", "training_state",
            "save_epoch_checkpoints", "resume_state", "check_resume", "config_changes", "EXTENDABLE",
            "EPOCH_SCHEDULERS", "TrainingInterrupted", "amp_dtype", "resolve_device", "DeviceSetup", "setup_device",
