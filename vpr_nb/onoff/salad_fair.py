@@ -36,7 +36,7 @@ from .._checks import check_int
 from ..losses import MultiSimilarityLoss
 from ..premise.record import paired_differences, premise_record
 from ..recipe import RECIPE, VALIDATION_WORLD, Method, build_start
-from ..recipe.arms import CITY_TEST_WORLDS, pooled_recall, run_arms
+from ..recipe.arms import CITY_TEST_WORLDS, counted_queries, pooled_recall, run_arms
 from ..verdict import control_gate
 from . import salad as os_
 
@@ -139,6 +139,28 @@ def gates(results) -> dict:
     a, b = COMPARISON
     return {f"{a} − {b}, premise {w}": control_gate(results["arms"][w][b]["R@1"], results["netvlad start"][w],
                                                      b, GATE_REFERENCE) for w in WORLDS}
+
+
+def arm_starts(train, tests, seeds) -> dict:
+    """Each arm's start (its temperature, :func:`methods`) of every seed, pooled test R@1: ``{arm: [per seed]}``."""
+    return {m.name: [round(pooled_recall(build_start(m, train, r, s), tests, RECIPE.ns)[RECIPE.ns[0]], 4)
+                     for s in seeds] for m, r in methods()}
+
+
+def check(seeds=SEEDS) -> dict:
+    """The design, checked before any training (``notebooks/results/05_fair_check.json``): each world's label
+    shares on its test worlds, both arms' starts and the untrained NetVLAD-16 of every seed, and the Sinkhorn
+    start's dustbin per label. Cheap (no fine-tune): the premise and the level starts hold or not before a
+    run spends its hours."""
+    seeds = os_._check_seeds(seeds)
+    out = {"premise": {}, "start R@1": {}, "netvlad start": {}, "start dustbin": {}}
+    for world in WORLDS:
+        train, _val, tests = world_splits(world)
+        out["premise"][world] = {**premise_values(tests), "test queries": sum(counted_queries(t) for t in tests)}
+        out["start R@1"][world] = arm_starts(train, tests, seeds)
+        out["netvlad start"][world] = netvlad_starts(train, tests, seeds)
+        out["start dustbin"][world] = start_dustbin(train, os_.labelled_sample(tests), seeds)
+    return out
 
 
 def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=None) -> dict:
