@@ -13,7 +13,7 @@ import pytest
 from vpr_nb.premise.record import (paired_differences, premise_record, premise_verdicts, record_problems,
                                    verdict_lines)
 from vpr_nb.onoff import clique as onoff_clique
-from vpr_nb.onoff import dwt_control, salad_fair
+from vpr_nb.onoff import dwt_control
 from vpr_nb.verdict import WORDS as VERDICTS, gap
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,7 +22,6 @@ RESULTS = ROOT / "notebooks" / "results"
 PREMISE_FILES = {"03_premise.json": "03_distance_ranking_weighted_loss.ipynb",
                  "03_control.json": "03_distance_ranking_weighted_loss.ipynb",
                  "05_premise.json": "05_salad.ipynb",
-                 "05_fair.json": "05_salad.ipynb",
                  "07_premise.json": "07_clique_mining.ipynb"}
 
 
@@ -163,8 +162,7 @@ def _scope(nb, stem: str) -> str:
 
 # the premise files whose notebook gates a comparison on its fine-tuned baseline (07: the paper's comparison)
 GATES = {"07_premise.json": onoff_clique.premise_gates,
-         "03_control.json": lambda results: dwt_control.gates(results["arms"]),
-         "05_fair.json": salad_fair.gates}
+         "03_control.json": lambda results: dwt_control.gates(results["arms"])}
 
 
 @pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
