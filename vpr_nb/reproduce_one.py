@@ -108,17 +108,22 @@ def _run_seconds(path: Path):
     return float(seconds), ", ".join(str(stamp[k]) for k in ("date", "git commit") if stamp.get(k))
 
 
+# a notebook's package experiments, each in its own results file NN_<kind>.json (vpr_nb.onoff), timed apart
+EXTRAS = {"premise": "premise experiment", "probes": "probes", "control": "positive control",
+          "nearmiss": "near-miss world", "fair_check": "fair design's check"}
+
+
 def estimate(stem: str, profile: str, committed_dir) -> Estimate:
     """The expected run time of notebook ``stem`` in ``profile``: for ``reproduce``, the run time its committed
     results record (``results.seconds``, the time of its experiment) and its time in the last timed
     ``make reproduce`` (:data:`MEASURED_MINUTES`), as a range, each plus its premise experiment's recorded time
-    (``NN_premise.json``, :mod:`vpr_nb.onoff`) and its probes (``NN_probes.json``) where it has them; for ``ci``,
+    (``NN_premise.json``, :mod:`vpr_nb.onoff`) and its other package experiments (:data:`EXTRAS`) where it has
+    them; for ``ci``,
     about a minute."""
     if profile != "reproduce":
         return Estimate(CI_MINUTES * 60, CI_MINUTES * 60, "the ci budget")
     times, parts = [], []
-    extras = {what: _run_seconds(Path(committed_dir) / f"{stem[:2]}_{kind}.json")
-              for what, kind in (("premise experiment", "premise"), ("probes", "probes"))}
+    extras = {what: _run_seconds(Path(committed_dir) / f"{stem[:2]}_{kind}.json") for kind, what in EXTRAS.items()}
     extras = {what: t for what, t in extras.items() if t}
     extra = sum(t[0] for t in extras.values())
     own = _run_seconds(Path(committed_dir) / f"{stem}.json")
@@ -142,7 +147,8 @@ def full_run_hours(committed_dir) -> float:
     on the 2 cores, so a run's wall is about half their sum (the last timed run: 166 min of notebook time in
     89.4 min wall). README states this figure; ``tests/test_reproduce_one.py`` keeps the two equal."""
     def stem(nb: str) -> str:
-        own = [p.stem for p in Path(committed_dir).glob(f"{nb}_*.json") if not p.stem.endswith(("_premise", "_probes"))]
+        own = [p.stem for p in Path(committed_dir).glob(f"{nb}_*.json")
+               if not p.stem.endswith(tuple(f"_{kind}" for kind in EXTRAS))]
         return own[0] if own else f"{nb}_"
     total = sum(estimate(stem(nb), "reproduce", committed_dir).high or 0.0 for nb in MEASURED_MINUTES)
     return round(total / 2 / 3600, 1)
