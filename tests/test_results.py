@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from vpr_nb import results
+from vpr_nb.reproduce_one import EXTRAS
 from vpr_nb.synthetic import CONDITIONS, WORLD_KINDS, make_config
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
@@ -39,9 +40,10 @@ def test_load_refuses_stale_or_missing_results(tmp_path):
 def test_every_committed_result_belongs_to_a_notebook_that_loads_it():
     """A committed file that no notebook reads would be shown nowhere (and never checked)."""
     for path in sorted((NOTEBOOKS / "results").glob("*.json")):
-        # NN_name.json belongs to NN_name.ipynb; NN_premise.json and NN_probes.json (vpr_nb.onoff) to notebook NN
+        # NN_name.json belongs to NN_name.ipynb; a package experiment's file (vpr_nb.onoff: NN_premise.json,
+        # NN_probes.json, ..., vpr_nb.reproduce_one.EXTRAS) to notebook NN
         nb = NOTEBOOKS / f"{path.stem}.ipynb"
-        if path.stem.endswith(("_premise", "_probes")):
+        if path.stem.endswith(tuple(f"_{kind}" for kind in EXTRAS)):
             nb = next(iter(sorted(NOTEBOOKS.glob(f"{path.stem[:2]}_*.ipynb"))), nb)
         assert nb.is_file(), f"{path.name} has no notebook {nb.name}"
         assert re.search(rf"results\.load\(\s*\\?[\"']{path.stem}", nb.read_text()), \
