@@ -197,6 +197,14 @@ def test_the_near_miss_world_holds_the_premise_and_its_verdict_is_stated_as_stor
     assert fz["ceiling (R@1)"] == pytest.approx((1 - fz["R@1"]) * fz["within 4 frames"], abs=1e-4)
     assert res["comparisons"][nm.COMPARISON] == [round(a - b, 4) for a, b in
                                                  zip(res["arms"][nm.ARMS[1]]["R@1"], res["arms"][nm.ARMS[0]]["R@1"])]
+    # "neither trained arm has fewer near misses per query than the frozen model; both gain on farther
+    # failures, cliques less" (07's reading)
+    def per_query(r1, share):
+        return (1 - r1) * share, (1 - r1) * (1 - share)
+    near0, far0 = per_query(fz["R@1"], fz["within 4 frames"])
+    arms = {n: per_query(np.mean(res["arms"][n]["R@1"]), np.mean(res["arms"][n]["near-miss share"])) for n in nm.ARMS}
+    assert all(near >= near0 for near, _ in arms.values())
+    assert arms[nm.ARMS[0]][1] < arms[nm.ARMS[1]][1] < far0
     nb, outputs, scope = _notebook("07_clique_mining")
     v = nm.verdict_of(res)
     assert f"{nm.COMPARISON}: {v.text()}" in outputs
