@@ -19,9 +19,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .._checks import check_positive
 from ._common import _check_reduction, _geo_like, _reduce, _triplet_distances
-from .triplet import DEFAULT_EPS, DEFAULT_SIGMA, TripletFamilyLoss, _check_geo_given, distance_weight
+from .triplet import DEFAULT_EPS, DEFAULT_SIGMA, DWTripletLoss, _check_geo_given, distance_weight
 
 
 def batch_mean_dw_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, geo_qp,
@@ -43,16 +42,9 @@ def batch_mean_dw_triplet_loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor
 
 
 @dataclass(frozen=True)
-class BatchMeanDWTripletLoss(TripletFamilyLoss):
-    """DW-T-Loss with its weight divided by its batch mean (:func:`batch_mean_dw_triplet_loss`; ``sigma`` > 0,
-    ``eps`` > 0). Same interface as :class:`vpr_nb.losses.DWTripletLoss`."""
-
-    sigma: float = DEFAULT_SIGMA
-    eps: float = DEFAULT_EPS
-
-    def __post_init__(self):
-        object.__setattr__(self, "sigma", check_positive(self.sigma, "sigma"))
-        object.__setattr__(self, "eps", check_positive(self.eps, "eps"))
+class BatchMeanDWTripletLoss(DWTripletLoss):
+    """DW-T-Loss with its weight divided by its batch mean (:func:`batch_mean_dw_triplet_loss`): the parameters
+    (``sigma`` > 0, ``eps`` > 0) and interface of :class:`vpr_nb.losses.DWTripletLoss`."""
 
     def __call__(self, q, p, n, geo_qp=None):
         _check_geo_given(self, geo_qp)

@@ -95,13 +95,8 @@ def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=Non
     (``max_epochs``: a shorter run, e.g. a smoke test; None: the recipe's). ``select``
     (:class:`vpr_nb.recipe.arms.Selection`): only those arms and seeds, returned as ``{"arms", "sgd"}`` (to
     re-make one committed number)."""
-    arms_recipe, sgd_recipe = RECIPE_ARMS, RECIPE_SGD
-    if max_epochs is not None:
-        arms_recipe = dataclasses.replace(arms_recipe, max_epochs=max_epochs)
-        sgd_recipe = dataclasses.replace(sgd_recipe, max_epochs=max_epochs)
-    train = make_dataset("city", seed=0, splits=("train",)).train
-    val = validation_split(VALIDATION_WORLD)
-    tests = test_splits(CITY_TEST_WORLDS)
+    arms_recipe, sgd_recipe = capped(max_epochs, RECIPE_ARMS, RECIPE_SGD)
+    train, val, tests = splits()
     arms = run_arms({w: {"train": train, "methods": methods(w)} for w in WORLDS}, val, tests, seeds, arms_recipe,
                     workers=workers, select=select)
     sgd = {}
@@ -111,11 +106,25 @@ def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=Non
                                   sgd_recipe, workers=workers, lr=lr, select=fixed).get("off", {})
     if select is not None:
         return {"arms": arms, "sgd": sgd}
-    values = premise_values(train)
-    queries = arms["off"]["T-Loss"]["test queries"]
-    record = premise_record(
-        EXPERIMENT["premise quantity"], REAL_DATA,
-        {w: {**values[w], "test queries": queries} for w in WORLDS},
-        {f"{a} − {b}": {w: paired_differences(arms[w][a]["R@1"], arms[w][b]["R@1"]) for w in WORLDS}
-         for a, b in COMPARISONS})
+    record = arms_record(arms, premise_values(train), EXPERIMENT["premise quantity"], REAL_DATA)
     return {"arms": arms, "sgd": sgd, "premise": record}
+
+
+def capped(max_epochs: int | None, *recipes):
+    """``recipes`` with ``max_epochs`` (None: as they are)."""
+    return tuple(r if max_epochs is None else dataclasses.replace(r, max_epochs=max_epochs) for r in recipes)
+
+
+def splits() -> tuple:
+    """03's training split (city seed 0), validation split and test splits."""
+    return (make_dataset("city", seed=0, splits=("train",)).train, validation_split(VALIDATION_WORLD),
+            test_splits(CITY_TEST_WORLDS))
+
+
+def arms_record(arms, values, quantity: str, real_data) -> dict:
+    """The premise record of the four arms in the worlds ``on`` and ``off``: :data:`COMPARISONS` per world, each
+    world's premise ``values`` with the test queries."""
+    queries = arms["off"]["T-Loss"]["test queries"]
+    return premise_record(quantity, real_data, {w: {**values[w], "test queries": queries} for w in ("on", "off")},
+                          {f"{a} − {b}": {w: paired_differences(arms[w][a]["R@1"], arms[w][b]["R@1"])
+                                          for w in ("on", "off")} for a, b in COMPARISONS})

@@ -30,10 +30,9 @@ import numpy as np
 
 from ..losses import DEFAULT_EPS, BatchMeanDWTripletLoss, distance_weight
 from ..premise import dwt as premise_dwt
-from ..premise.record import paired_differences, premise_record
-from ..recipe import RECIPE, VALIDATION_WORLD, Method, build_start, validation_split
-from ..recipe.arms import CITY_TEST_WORLDS, run_arms, test_splits
-from ..synthetic import make_dataset
+from ..premise.record import paired_differences
+from ..recipe import RECIPE, Method, build_start
+from ..recipe.arms import run_arms
 from ..verdict import control_gate
 from . import dwt
 
@@ -113,13 +112,8 @@ def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=Non
     """The reproduce profile: both worlds' arms, the premise record, and the SGD arm paired with ``baseline``
     (``{arm: {"R@1": [per seed]}}``, 03_premise.json's SGD arms at :data:`SGD_LR`; None: the SGD arm is left
     out). ``select``: only those arms and seeds, returned as ``{"arms", "sgd"}``."""
-    recipe, sgd_recipe = RECIPE_CONTROL, dwt.RECIPE_SGD
-    if max_epochs is not None:
-        recipe = dataclasses.replace(recipe, max_epochs=max_epochs)
-        sgd_recipe = dataclasses.replace(sgd_recipe, max_epochs=max_epochs)
-    train = make_dataset("city", seed=0, splits=("train",)).train
-    val = validation_split(VALIDATION_WORLD)
-    tests = test_splits(CITY_TEST_WORLDS)
+    recipe, sgd_recipe = dwt.capped(max_epochs, RECIPE_CONTROL, dwt.RECIPE_SGD)
+    train, val, tests = dwt.splits()
     arms = run_arms({w: {"train": train, "methods": methods(w)} for w in WORLDS}, val, tests, seeds, recipe,
                     workers=workers, select=select)
     sgd = {}
@@ -130,13 +124,7 @@ def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=Non
         sgd = {f"{SGD_LR:g}": sgd} if sgd else {}
     if select is not None:
         return {"arms": arms, "sgd": sgd}
-    values = premise_values(train)
-    queries = arms["off"]["T-Loss"]["test queries"]
-    record = premise_record(
-        EXPERIMENT["premise quantity"], REAL_DATA,
-        {w: {**values[w], "test queries": queries} for w in WORLDS},
-        {f"{a} − {b}": {w: paired_differences(arms[w][a]["R@1"], arms[w][b]["R@1"]) for w in WORLDS}
-         for a, b in COMPARISONS})
+    record = dwt.arms_record(arms, premise_values(train), EXPERIMENT["premise quantity"], REAL_DATA)
     out = {"arms": arms, "sgd": sgd, "premise": record}
     if baseline is not None:
         rows = {**{a: list(v["R@1"]) for a, v in baseline.items()}, NORMALISED: sgd[f"{SGD_LR:g}"][NORMALISED]["R@1"]}
