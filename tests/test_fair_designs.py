@@ -228,3 +228,18 @@ def test_salads_fair_design_holds_before_training():
                       *(pair for arm in ("Sinkhorn", "softmax")
                         for pair in zip(res["start R@1"]["on"][arm], res["start R@1"]["off"][arm]))]:
         assert on_ < off_ - 0.2
+
+
+def test_the_positive_control_reading_follows_its_stored_arms():
+    res = _stored("03_control")
+    on = res["arms"]["on"]
+    # "with wrong positives, T-Loss, CE-Loss and the placebo barely leave their start; DW-T-Loss ... climbs"
+    for arm in ("T-Loss", "CE-Loss", "placebo"):
+        assert abs(np.mean(on[arm]["R@1"]) - np.mean(on[arm]["start R@1"])) < 0.015, arm
+    assert np.mean(on["DW-T-Loss"]["R@1"]) - np.mean(on["DW-T-Loss"]["start R@1"]) > 0.05
+    assert res["premise"]["worlds"]["on"]["value"] > 0.3 and res["premise"]["worlds"]["off"]["value"] == 0
+    # "under SGD the normalised loss lands on CE-Loss, and plain DW-T-Loss beats both"
+    from vpr_nb.verdict import verdicts
+    words = {n: v.word for n, v in verdicts(res["sgd comparisons"]).items()}
+    assert words == {"DW-T / batch mean − CE-Loss": "no measurable effect", "DW-T-Loss − DW-T / batch mean": "helps",
+                     "DW-T-Loss − CE-Loss": "helps"}
