@@ -767,7 +767,7 @@ plt.show()
 # %% [markdown]
 # **Reading the control.**
 #
-# Here *premise on* is the control world and *premise off* its twin.
+# *Premise on* is the control world, *premise off* its twin.
 #
 # * *DW-T-Loss − placebo, premise on*: helps.
 # * *DW-T-Loss − T-Loss, premise on*: helps.
@@ -901,7 +901,7 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 #    W-T-Loss at the paper's lr divided by its `RATIOS` entry. Does it still differ from T-Loss?
 #    <details><summary>Hint</summary><code>lr=PAPER_LR / RATIOS["netvlad"]["W-T-Loss"]</code> with the
 #    <code>SGD</code> recipe.</details>
-# 4. **σ that ranks** (seconds). Set `SIGMA = 25.0` and rerun the gradient cell. Does the cosine move?
+# 4. **σ that ranks** (seconds). In a new cell, set `SIGMA = 25.0`; rerun the gradient cell. Does the cosine move?
 #    <details><summary>Hint</summary>Watch the cosine column.</details>
 #
 # ## Takeaways

@@ -37,8 +37,8 @@ _NON_NEGATIVE = ("position_jitter", "heading_jitter", "pitch_jitter", "occluder_
                  "condition_strength", "db_position_jitter", "db_heading_jitter", "street_tree_shift",
                  "tree_colour_variation", "style_colour_variation", "trees_per_frame", "track_curvature",
                  "house_yaw", "corner_remainder", "street_tree_inset", "kerb_margin", "roadside_spacing")
-_POSITIVE = ("distractor_height_scale", "fov", "view_distance", "block_size", "street_width", "place_spacing", "frame_spacing",
-             "street_tree_spacing", "pole_spacing", "sky_radius", "split_gap", "pos_radius", "train_pos_radius")
+_POSITIVE = ("distractor_height_scale", "fov", "view_distance", "block_size", "street_width", "place_spacing",
+             "frame_spacing", "street_tree_spacing", "pole_spacing", "sky_radius", "split_gap", "pos_radius", "train_pos_radius")
 
 
 @dataclass
