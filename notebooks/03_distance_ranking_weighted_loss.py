@@ -624,11 +624,7 @@ plt.show()
 
 # %%
 # NBVAL_TOLERANCE=0.02
-if PROFILE == "reproduce":
-    t0 = time.perf_counter()
-    prem = onoff_dwt.run()
-    results.save("03_premise", onoff_dwt.EXPERIMENT, {**prem, "seconds": round(time.perf_counter() - t0, 1)})
-pc = results.load("03_premise", onoff_dwt.EXPERIMENT)
+pc = results.made_or_loaded("03_premise", onoff_dwt.EXPERIMENT, onoff_dwt.run, PROFILE)
 pres = pc["results"]
 PREM = pres["premise"]
 ARM_NAMES = onoff_dwt.EXPERIMENT["arms"]
@@ -713,11 +709,9 @@ plt.show()
 
 # %%
 # NBVAL_TOLERANCE=0.02
-if PROFILE == "reproduce":
-    t0 = time.perf_counter()
-    ctl = dwt_control.run(baseline={a: {"R@1": v["R@1"]} for a, v in pres["sgd"][f"{dwt_control.SGD_LR:g}"].items()})
-    results.save("03_control", dwt_control.EXPERIMENT, {**ctl, "seconds": round(time.perf_counter() - t0, 1)})
-cc = results.load("03_control", dwt_control.EXPERIMENT)
+SGD_ARMS = pres["sgd"][f"{dwt_control.SGD_LR:g}"]          # the control's SGD arm is paired with these
+cc = results.made_or_loaded("03_control", dwt_control.EXPERIMENT, lambda: dwt_control.run(
+    baseline={a: {"R@1": v["R@1"]} for a, v in SGD_ARMS.items()}), PROFILE)
 cres, CTRL = cc["results"], cc["results"]["premise"]
 CTRL_GATES = dwt_control.gates(cres["arms"])
 print(f"notebooks/results/03_control.json, date {cc['stamp']['date']}; {cres['seconds'] / 60:.0f} min on 2 cores")

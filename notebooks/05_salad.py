@@ -648,11 +648,7 @@ for name, r in SWEEP.items():
 
 # %%
 # NBVAL_TOLERANCE=0.02
-if PROFILE == "reproduce":
-    t0 = time.perf_counter()
-    prem = onoff_salad.run()
-    results.save("05_premise", onoff_salad.EXPERIMENT, {**prem, "seconds": round(time.perf_counter() - t0, 1)})
-pc = results.load("05_premise", onoff_salad.EXPERIMENT)
+pc = results.made_or_loaded("05_premise", onoff_salad.EXPERIMENT, onoff_salad.run, PROFILE)
 pres, PREM = pc["results"], pc["results"]["premise"]
 print(f"notebooks/results/05_premise.json, date {pc['stamp']['date']}; {pres['seconds'] / 60:.0f} min on 2 cores")
 for world in ("on", "off"):
@@ -729,11 +725,7 @@ plt.show()
 
 # %%
 # NBVAL_TOLERANCE=0.02
-if PROFILE == "reproduce":
-    t0 = time.perf_counter()
-    fair = salad_fair.check()
-    results.save("05_fair_check", salad_fair.EXPERIMENT, {**fair, "seconds": round(time.perf_counter() - t0, 1)})
-fc = results.load("05_fair_check", salad_fair.EXPERIMENT)
+fc = results.made_or_loaded("05_fair_check", salad_fair.EXPERIMENT, salad_fair.check, PROFILE)
 fres = fc["results"]
 print(f"notebooks/results/05_fair_check.json, date {fc['stamp']['date']}; {fres['seconds'] / 60:.0f} min on 2 cores")
 for world in ("on", "off"):

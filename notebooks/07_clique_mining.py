@@ -557,14 +557,11 @@ record("07_clique_mining", {"profile": PROFILE, "seeds": len(RUN["seeds"]), "max
 
 # %%
 # NBVAL_TOLERANCE=0.02
-if PROFILE == "reproduce":
-    t0 = time.perf_counter()
-    prem = onoff_clique.run()
-    results.save("07_premise", onoff_clique.EXPERIMENT, {**prem, "seconds": round(time.perf_counter() - t0, 1)})
 def ms(vals):
     return "{:.3f} ± {:.3f}".format(*results.mean_std(vals))
 
-pc = results.load("07_premise", onoff_clique.EXPERIMENT)
+
+pc = results.made_or_loaded("07_premise", onoff_clique.EXPERIMENT, onoff_clique.run, PROFILE)
 pres, PREM = pc["results"], pc["results"]["premise"]
 print(f"notebooks/results/07_premise.json, date {pc['stamp']['date']}; {pres['seconds'] / 60:.0f} min on 2 cores")
 for world in ("on", "off"):
@@ -628,11 +625,8 @@ plt.show()
 # %%
 # NBVAL_TOLERANCE=0.02
 RANDOM, CLIQUES = clique_probes.RANDOM, clique_probes.CLIQUES
-if PROFILE == "reproduce":
-    t0 = time.perf_counter()
-    probes = clique_probes.run(pres["arms"]["on"])
-    results.save("07_probes", clique_probes.EXPERIMENT, {**probes, "seconds": round(time.perf_counter() - t0, 1)})
-pp = results.load("07_probes", clique_probes.EXPERIMENT)["results"]
+pp = results.made_or_loaded("07_probes", clique_probes.EXPERIMENT, lambda: clique_probes.run(pres["arms"]["on"]),
+                            PROFILE)["results"]
 print(f"notebooks/results/07_probes.json: premise on, 5 paired seeds, {pp['seconds'] / 60:.0f} min on 2 cores\n")
 r1 = {**pp["paired with"], **{p: a["R@1"] for p, a in pp["arms"].items()}}
 print(f"{'dense half':28s} {'nearest negative':>16s} {'share <= 2.5 m':>14s} {'1st quarter':>11s} {'test R@1':>15s}")
@@ -694,11 +688,7 @@ plt.show()
 
 # %%
 # NBVAL_TOLERANCE=0.02
-if PROFILE == "reproduce":
-    t0 = time.perf_counter()
-    near = clique_nearmiss.run()
-    results.save("07_nearmiss", clique_nearmiss.EXPERIMENT, {**near, "seconds": round(time.perf_counter() - t0, 1)})
-nc = results.load("07_nearmiss", clique_nearmiss.EXPERIMENT)
+nc = results.made_or_loaded("07_nearmiss", clique_nearmiss.EXPERIMENT, clique_nearmiss.run, PROFILE)
 nres, nfz = nc["results"], nc["results"]["frozen"]
 print(f"notebooks/results/07_nearmiss.json, date {nc['stamp']['date']}; {nres['seconds'] / 60:.0f} min on 2 cores")
 print(f"frames {nfz['frame spacing (m)']:g} m apart, {nfz['test queries']} test queries; frozen backbone + GeM: R@1 "

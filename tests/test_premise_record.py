@@ -148,7 +148,7 @@ def _stored(results_file):
 def _scope(nb, stem: str) -> str:
     """The markdown that reads the results file ``stem``: from the code cell that loads it up to the next code
     cell that loads another results file (a notebook with two premise files states each one's verdicts there)."""
-    loads = re.compile(r"results\.load\(\s*[\"']([\w-]+)[\"']")
+    loads = re.compile(r"results\.(?:load|made_or_loaded)\(\s*[\"']([\w-]+)[\"']")
     inside, text = False, []
     for cell in nb.cells:
         if cell.cell_type == "code":

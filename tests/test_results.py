@@ -46,7 +46,7 @@ def test_every_committed_result_belongs_to_a_notebook_that_loads_it():
         if path.stem.endswith(tuple(f"_{kind}" for kind in EXTRAS)):
             nb = next(iter(sorted(NOTEBOOKS.glob(f"{path.stem[:2]}_*.ipynb"))), nb)
         assert nb.is_file(), f"{path.name} has no notebook {nb.name}"
-        assert re.search(rf"results\.load\(\s*\\?[\"']{path.stem}", nb.read_text()), \
+        assert re.search(rf"results\.(?:load|made_or_loaded)\(\s*\\?[\"']{path.stem}", nb.read_text()), \
             f"{nb.name} never calls results.load('{path.stem}', ...)"
 
 
@@ -188,3 +188,22 @@ def test_results_files_are_not_changes_of_the_code(monkeypatch):
     out = " M notebooks/results/03_x.json\n M vpr_nb/gds.py\n"
     monkeypatch.setattr(subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, stdout=out))
     assert report.uncommitted_changes() == ["vpr_nb/gds.py"]
+
+
+def test_made_or_loaded_runs_and_saves_only_in_the_reproduce_profile(tmp_path, monkeypatch):
+    monkeypatch.setenv("VPR_NB_ALLOW_DIRTY", "1")
+    calls = []
+
+    def run():
+        calls.append(1)
+        return {"R@1": 0.5}
+
+    with pytest.raises(FileNotFoundError):
+        results.made_or_loaded("99_demo", {"epochs": 1}, run, "ci", results_dir=tmp_path)
+    assert calls == []                                        # ci: never runs
+    doc = results.made_or_loaded("99_demo", {"epochs": 1}, run, "reproduce", results_dir=tmp_path)
+    assert calls == [1] and doc["results"]["R@1"] == 0.5 and doc["results"]["seconds"] >= 0
+    assert results.made_or_loaded("99_demo", {"epochs": 1}, run, "ci", results_dir=tmp_path)["results"] == \
+        doc["results"] and calls == [1]
+    with pytest.raises(ValueError, match="function"):
+        results.made_or_loaded("99_demo", {"epochs": 1}, {"R@1": 0.5}, "ci", results_dir=tmp_path)

@@ -33,6 +33,7 @@ import hashlib
 import json
 import math
 import os
+import time
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -268,6 +269,19 @@ def _read_doc(path: Path) -> dict:
             raise ValueError(f"{path}: its {key!r} entry is a JSON {_json_kind(doc[key])}, not "
                              f"{'an object' if kind is dict else 'a string'}; {fix}")
     return doc
+
+
+def made_or_loaded(name: str, config: Mapping, run, profile: str, *, results_dir=None) -> dict:
+    """A notebook's package experiment: with ``profile == "reproduce"``, ``run()`` (no arguments) is timed and its
+    results saved with their ``"seconds"`` (:func:`save`); in every profile the committed file is then
+    returned by :func:`load` (so the reproduce profile shows what it saved, the CI profile what is committed)."""
+    if not callable(run):
+        raise ValueError(f"run must be a function of no arguments that returns the results, got {run!r}")
+    if profile == "reproduce":
+        t0 = time.perf_counter()
+        out = run()
+        save(name, config, {**out, "seconds": round(time.perf_counter() - t0, 1)}, results_dir=results_dir)
+    return load(name, config, results_dir=results_dir)
 
 
 def load(name: str, config: Mapping, *, results_dir=None) -> dict:
