@@ -7,7 +7,7 @@ lie beyond the 40 m positive radius (:class:`vpr_nb.training.TripletSource` take
 off, the twin: NetVLAD's best positive within 10 m at the paper's sigma = 800 m (notebook 03's premise-off
 world). The four arms of :mod:`vpr_nb.onoff.dwt` train in both.
 
-The recipe deviates in two ways (:data:`RECIPE_CONTROL`), the same for every arm:
+The recipe deviates in two ways (:data:`RECIPE_CONTROL`, the premise experiment's), the same for every arm:
 
 - the start is **not** a selection candidate and patience is 6 epochs: with wrong positives, an arm may first
   fall and then climb, and patience 4 with the start as a candidate would stop it before it climbs;
@@ -31,7 +31,7 @@ import numpy as np
 from ..losses import DEFAULT_EPS, BatchMeanDWTripletLoss, distance_weight
 from ..premise import dwt as premise_dwt
 from ..premise.record import paired_differences
-from ..recipe import RECIPE, Method, build_start
+from ..recipe import Method, build_start
 from ..recipe.arms import run_arms
 from ..verdict import control_gate
 from . import dwt
@@ -40,7 +40,7 @@ WORLDS = {"on": {"positive": "random", "radius": 40.0, "sigma": 40.0},
           "off": dict(dwt.WORLDS["off"])}
 SEEDS = dwt.SEEDS
 EVAL_RADIUS = 25.0                       # metres: a database image within it counts as a match at test
-RECIPE_CONTROL = dataclasses.replace(RECIPE, initial_candidate=False, patience=6, search_seeds=3)
+RECIPE_CONTROL = dwt.RECIPE_ARMS         # the premise experiment's recipe
 SGD_LR = 1e-4                            # the paper's
 NORMALISED = "DW-T / batch mean"
 COMPARISONS = dwt.COMPARISONS
