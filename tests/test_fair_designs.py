@@ -12,6 +12,7 @@ from vpr_nb.losses import BatchMeanDWTripletLoss, CETripletLoss, DWTripletLoss, 
     ce_triplet_loss, distance_weight
 from vpr_nb.onoff import clique as oc
 from vpr_nb.onoff import clique_nearmiss as nm
+from vpr_nb.onoff import clique_paper as cp
 from vpr_nb.onoff import dwt, dwt_control
 from vpr_nb.onoff import salad_fair as sf
 from vpr_nb.recipe import RECIPE, Recipe, TripletBatches, build_start
@@ -72,6 +73,7 @@ def test_the_positive_control_and_its_twin():
     assert dwt_control.WORLDS["on"] == {"positive": "random", "radius": 40.0, "sigma": 40.0}
     assert dwt_control.WORLDS["off"] == dwt.WORLDS["off"]
     r = dwt_control.RECIPE_CONTROL
+    assert r == dwt.RECIPE_ARMS           # one recipe for 03's two experiments
     assert (r.initial_candidate, r.patience, r.search_seeds) == (False, 6, 3)
     assert dataclasses.replace(r, initial_candidate=True, patience=4, search_seeds=3) == RECIPE
     # sigma 40 m: never a negative weight on a positive within 40 m, and a wrong (beyond 25 m) one weighs less
@@ -171,6 +173,30 @@ def test_the_near_miss_world_is_07s_route_four_times_denser_and_gated():
     res["arms"][nm.ARMS[0]]["R@1"] = [0.80, 0.81, 0.80]
     assert nm.verdict_of(res).word == "inconclusive"
 
+
+
+def test_the_papers_comparison_keeps_sparse_places_of_the_route_apart():
+    # a route training set of 200 places (2 images each, ids along the track), clusters of 5 places
+    g = np.repeat(np.arange(200), 2)
+    route = {"images": np.arange(400)[:, None], "utm": np.c_[g * 0.5, 0 * g], "heading": 0 * g,
+             "groups": g, "clusters": g // 5}
+    sparse = cp.sparse_subset(route, stride=10)
+    assert sorted(set(sparse["images"][:, 0] // 2)) == list(range(0, 200, 10))   # every 10th place, all its images
+    assert sparse["groups"].max() == 19 and sparse["clusters"].max() == 19        # renumbered compactly
+    assert np.diff(np.unique(sparse["utm"][:, 0])).min() == 5.0                   # 10 places of 0.5 m apart
+    with pytest.raises(ValueError, match="fewer than a sparse-only batch"):
+        cp.sparse_subset(route, stride=20)
+    # the near-miss world: one place every 50 (25 m of track); one head for every arm; the gate
+    assert cp.SPARSE_STRIDE == 50 and len(cp.SEEDS) >= 8 and cp.ARMS[0] == "sparse only"
+    res = {"arms": {"sparse only": {"R@1": [0.85, 0.86, 0.84]}}, "frozen": {"R@1": 0.816},
+           "comparisons": {"sparse + dense cliques − sparse only": [0.01, 0.012, 0.011],
+                           "sparse + dense cliques − sparse + dense random": [0.0, 0.01, -0.01]}}
+    v = cp.verdicts_of(res)
+    assert v["sparse + dense cliques − sparse only"].word == "helps" and v["sparse + dense cliques − sparse only"].family == 2
+    res["arms"]["sparse only"]["R@1"] = [0.80, 0.81, 0.80]
+    v = cp.verdicts_of(res)
+    assert v["sparse + dense cliques − sparse only"].word == "inconclusive"
+    assert v["sparse + dense cliques − sparse + dense random"].word == "no measurable effect"
 
 # --- the stored results of the fair designs, against what their notebooks print and state --------------------------
 def _stored(name: str):
