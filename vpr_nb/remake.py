@@ -3,11 +3,11 @@ beside the committed values.
 
 ``make reproduce NOTEBOOK=07 ARMS='cliques*' SEEDS=2`` runs ``python -m vpr_nb.remake 07 --arms 'cliques*'
 --seeds 2``: for every results file of notebook 07 made by a package experiment (:data:`EXPERIMENTS`:
-``07_premise.json``, ``07_probes.json``, ``07_nearmiss.json``), the arms whose names match the pattern train on those seeds only, each
-at the learning rate the committed file chose (a seed's run at the chosen rate is the same run whether or not it
-took part in the choice), and their test Recall@1 is printed beside the committed one. A single arm and seed
-takes a few minutes on 2 cores. The experiments a notebook defines in its own cells (e.g. 07's main table) are
-re-made by running the notebook: ``make reproduce NOTEBOOK=07``.
+``07_premise.json``, ``07_probes.json``, ``07_nearmiss.json``, ``07_paper.json``), the arms whose names match the
+pattern train on those seeds only, each at the learning rate the committed file chose (a seed's run at the chosen
+rate is the same run whether or not it took part in the choice), and their test Recall@1 is printed beside the
+committed one. A single arm and seed takes a few minutes on 2 cores. The experiments a notebook defines in its
+own cells (e.g. 07's main table) are re-made by running the notebook: ``make reproduce NOTEBOOK=07``.
 """
 from __future__ import annotations
 
@@ -21,12 +21,13 @@ import torch
 
 from . import results
 from .kernels import apply_in_process, is_pinned
-from .onoff import clique, clique_nearmiss, clique_probes, dwt, dwt_control, salad, salad_fair
+from .onoff import clique, clique_nearmiss, clique_paper, clique_probes, dwt, dwt_control, salad, salad_fair
 from .recipe.arms import Selection
 
 # results file -> the package experiment that makes it
 EXPERIMENTS = {"03_premise": dwt, "03_control": dwt_control, "05_premise": salad, "05_fair": salad_fair,
-               "07_premise": clique, "07_probes": clique_probes, "07_nearmiss": clique_nearmiss}
+               "07_premise": clique, "07_probes": clique_probes, "07_nearmiss": clique_nearmiss,
+               "07_paper": clique_paper}
 
 
 def _flat(doc: Mapping, probes: bool) -> dict:

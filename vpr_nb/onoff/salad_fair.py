@@ -38,7 +38,7 @@ from ..losses import MultiSimilarityLoss
 from ..premise.record import paired_differences, premise_record
 from ..recipe import RECIPE, VALIDATION_WORLD, Method, build_start
 from ..recipe.arms import CITY_TEST_WORLDS, counted_queries, pooled_recall, run_arms
-from ..verdict import control_gate
+from ..verdict import control_gate, verdicts
 from . import salad as os_
 
 ON = {"distractor_rate": 16.0, "distractor_height_scale": 3.0, "distractor_layers": 4}
@@ -142,6 +142,14 @@ def gates(results) -> dict:
     a, b = COMPARISON
     return {f"{a} − {b}, premise {w}": control_gate(results["arms"][w][b]["R@1"], results["netvlad start"][w],
                                                      b, GATE_REFERENCE) for w in WORLDS}
+
+
+def dustbin_verdicts(results) -> dict:
+    """The dustbin table of a results file's ``results``, one Holm family: ``{"<comparison>, premise <world>":
+    Verdict}`` over each world's :data:`DUSTBIN_COMPARISONS` (per-seed differences; "helps": the dustbin takes
+    more of a distractor cell than of an object cell, or ranks object cells higher, than its reference)."""
+    return verdicts({f"{name}, premise {w}": d for w in WORLDS
+                     for name, d in results["dustbin"][w]["comparisons"].items()})
 
 
 def arm_starts(train, tests, seeds, world: str = "on") -> dict:
