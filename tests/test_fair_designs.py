@@ -256,6 +256,31 @@ def test_salads_fair_design_holds_before_training():
         assert on_ < off_ - 0.2
 
 
+
+def test_salads_fair_test_reads_as_its_stored_results():
+    res = _stored("05_fair")
+    cap, patience = sf.RECIPE_FAIR.max_epochs, sf.RECIPE_FAIR.patience
+    for world in ("on", "off"):
+        for arm in sf.COMPARISON:
+            a = res["arms"][world][arm]
+            assert len(a["R@1"]) >= 5 and a["lr interior"], (world, arm)                  # "every lr is interior"
+            assert max(a["best epoch"]) < cap - patience, (world, arm)   # "every best epoch lies far before the cap"
+    assert all(g.passed for g in sf.gates(res).values())                                  # "both gates pass"
+    # "with tall distractors every model finds about one query in ten"
+    on = [*res["netvlad start"]["on"], *(x for arm in sf.COMPARISON for x in res["arms"]["on"][arm]["R@1"])]
+    assert 0.05 <= min(on) and max(on) <= 0.15
+    # the dustbin: distractors over objects, more than at its start; even more of ground and sky; AUC does not rise
+    dv = sf.dustbin_verdicts(res)
+    assert dv["distractor − object, trained, premise on"].word == "helps"
+    assert dv["distractor − object, trained − start, premise on"].word == "helps"
+    assert dv["kept-mass AUC, trained − start, premise on"].word != "helps"
+    trained = {k: np.mean(v) for k, v in res["arms"]["on"]["Sinkhorn"].items() if k.startswith("dustbin share")}
+    assert min(trained["dustbin share, ground"], trained["dustbin share, sky"]) > trained["dustbin share, distractor"]
+    nb, outputs, scope = _notebook("05_salad")
+    for name, v in dv.items():                                              # the notebook prints the dustbin table
+        assert f"{name}: {v.text()}" in outputs
+    assert "even more of ground and sky" in scope(nb, "05_fair")
+
 def test_the_positive_control_reading_follows_its_stored_arms():
     res = _stored("03_control")
     on = res["arms"]["on"]

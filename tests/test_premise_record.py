@@ -14,6 +14,7 @@ from vpr_nb.premise.record import (paired_differences, premise_record, premise_v
                                    verdict_lines)
 from vpr_nb.onoff import clique as onoff_clique
 from vpr_nb.onoff import dwt_control
+from vpr_nb.onoff import salad_fair
 from vpr_nb.verdict import WORDS as VERDICTS, gap
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,6 +23,7 @@ RESULTS = ROOT / "notebooks" / "results"
 PREMISE_FILES = {"03_premise.json": "03_distance_ranking_weighted_loss.ipynb",
                  "03_control.json": "03_distance_ranking_weighted_loss.ipynb",
                  "05_premise.json": "05_salad.ipynb",
+                 "05_fair.json": "05_salad.ipynb",
                  "07_premise.json": "07_clique_mining.ipynb"}
 
 
@@ -162,7 +164,8 @@ def _scope(nb, stem: str) -> str:
 
 # the premise files whose notebook gates a comparison on its fine-tuned baseline (07: the paper's comparison)
 GATES = {"07_premise.json": onoff_clique.premise_gates,
-         "03_control.json": lambda results: dwt_control.gates(results["arms"])}
+         "03_control.json": lambda results: dwt_control.gates(results["arms"]),
+         "05_fair.json": salad_fair.gates}
 
 
 @pytest.mark.parametrize("results_file", sorted(PREMISE_FILES))
