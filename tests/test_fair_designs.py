@@ -281,6 +281,20 @@ def test_salads_fair_test_reads_as_its_stored_results():
         assert f"{name}: {v.text()}" in outputs
     assert "even more of ground and sky" in scope(nb, "05_fair")
 
+
+def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
+    from vpr_nb.premise.record import premise_verdicts
+    prem, ctrl = _stored("03_premise"), _stored("03_control")
+    for arm, a in prem["arms"]["off"].items():            # one recipe: the premise-off arms are the control's twin
+        assert a["R@1"] == ctrl["arms"]["off"][arm]["R@1"], arm
+    assert all(a["lr interior"] for w in ("on", "off") for a in prem["arms"][w].values())
+    # "the placebo, the same weights unlinked from the triplet, ends level with T-Loss" (premise on)
+    on = prem["arms"]["on"]
+    assert abs(np.mean(np.subtract(on["placebo"]["R@1"], on["T-Loss"]["R@1"]))) < 0.01
+    # "Caveat: Holm p 0.043, near the threshold"
+    v = premise_verdicts(prem["premise"])["DW-T-Loss − placebo, premise on"]
+    assert v.word == "helps" and 0.01 < v.p_holm < 0.05 and f"Holm p {v.p_holm:.3f}" in v.text()
+
 def test_the_positive_control_reading_follows_its_stored_arms():
     res = _stored("03_control")
     on = res["arms"]["on"]
