@@ -705,7 +705,7 @@ plt.show()
 # |---|---|---|
 # | main table, no distractors | no: nothing comes and goes | SALAD − NetVLAD hurts |
 # | premise on | barely: distractors cover few pixels | no measurable effect |
-# | tall distractors, level starts, MS loss | yes, by design (below) | no measurable effect, near the floor |
+# | tall distractors, level starts, MS loss | partly: every model near the floor | no measurable effect |
 #
 # Still unlike the paper: a small CNN, not DINOv2; triplets in the main table.
 
