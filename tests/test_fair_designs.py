@@ -295,6 +295,19 @@ def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
     v = premise_verdicts(prem["premise"])["DW-T-Loss − placebo, premise on"]
     assert v.word == "helps" and 0.01 < v.p_holm < 0.05 and f"Holm p {v.p_holm:.3f}" in v.text()
 
+
+def test_the_papers_comparison_reads_as_stored():
+    res = _stored("07_paper")
+    # "every run keeps its start (best epoch 0)"; "the gate fails: the comparison stays inconclusive"
+    for name in cp.ARMS:
+        a = res["arms"][name]
+        assert len(a["R@1"]) >= 8 and set(a["best epoch"]) == {0}, name
+        assert a["R@1"] == a["start R@1"] and all(r == res["frozen"]["R@1"] for r in a["R@1"]), name
+    assert not cp.gate(res).passed
+    assert cp.verdicts_of(res)["sparse + dense cliques − sparse only"].word == "inconclusive"
+    nb, outputs, scope = _notebook("07_clique_mining")
+    assert "Every run keeps its start" in scope(nb, "07_paper") and "gate: " + cp.gate(res).text() in outputs
+
 def test_the_positive_control_reading_follows_its_stored_arms():
     res = _stored("03_control")
     on = res["arms"]["on"]
