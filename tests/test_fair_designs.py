@@ -296,6 +296,12 @@ def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
     assert v.word == "helps" and 0.01 < v.p_holm < 0.05 and f"Holm p {v.p_holm:.3f}" in v.text()
 
 
+
+def test_the_papers_comparison_with_salad_changes_only_the_head():
+    from vpr_nb.onoff import clique_paper_salad as cps
+    assert set(cps.EXPERIMENT) == set(cp.EXPERIMENT) and cps.HEAD == "salad"
+    assert {k for k in cp.EXPERIMENT if cp.EXPERIMENT[k] != cps.EXPERIMENT[k]} == {"aggregator"}
+
 def test_the_papers_comparison_reads_as_stored():
     res = _stored("07_paper")
     # "every run keeps its start (best epoch 0)"; "the gate fails: the comparison stays inconclusive"

@@ -3,8 +3,8 @@ beside the committed values.
 
 ``make reproduce NOTEBOOK=07 ARMS='cliques*' SEEDS=2`` runs ``python -m vpr_nb.remake 07 --arms 'cliques*'
 --seeds 2``: for every results file of notebook 07 made by a package experiment (:data:`EXPERIMENTS`:
-``07_premise.json``, ``07_probes.json``, ``07_nearmiss.json``, ``07_paper.json``), the arms whose names match the
-pattern train on those seeds only, each at the learning rate the committed file chose (a seed's run at the chosen
+``07_premise.json``, ``07_probes.json``, ``07_nearmiss.json``, ``07_paper.json``, ...), the arms whose names match
+the pattern train on those seeds only, each at the learning rate the committed file chose (a seed's run at the chosen
 rate is the same run whether or not it took part in the choice), and their test Recall@1 is printed beside the
 committed one. A single arm and seed takes a few minutes on 2 cores. The experiments a notebook defines in its
 own cells (e.g. 07's main table) are re-made by running the notebook: ``make reproduce NOTEBOOK=07``.

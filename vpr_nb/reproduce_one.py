@@ -111,7 +111,7 @@ def _run_seconds(path: Path):
 # a notebook's package experiments, each in its own results file NN_<kind>.json (vpr_nb.onoff), timed apart
 EXTRAS = {"premise": "premise experiment", "probes": "probes", "control": "positive control",
           "nearmiss": "near-miss world", "fair_check": "fair design's check", "fair": "fair test",
-          "paper": "paper's comparison"}
+          "paper": "paper's comparison", "paper_salad": "paper's comparison with SALAD"}
 
 
 def estimate(stem: str, profile: str, committed_dir) -> Estimate:

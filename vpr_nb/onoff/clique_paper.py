@@ -72,10 +72,11 @@ def sparse_subset(route: dict, stride: int = SPARSE_STRIDE) -> dict:
             "clusters": compact(route["clusters"][keep])}
 
 
-def methods(route_train, frozen=None) -> list[Method]:
-    """The three arms (:data:`ARMS`) on ``route_train``: GeM, one Multi-Similarity loss per half, sparse places
-    from :func:`sparse_subset`; the cliques' threshold is ``route_train.pos_radius`` and their group descriptors
-    come from ``frozen`` (default :func:`vpr_nb.onoff.clique.frozen_model`)."""
+def methods(route_train, frozen=None, head: str = "gem") -> list[Method]:
+    """The three arms (:data:`ARMS`) on ``route_train``: ``head`` (every arm the same aggregator), one
+    Multi-Similarity loss per half, sparse places from :func:`sparse_subset`; the cliques' threshold is
+    ``route_train.pos_radius`` and their group descriptors come from ``frozen`` (default
+    :func:`vpr_nb.onoff.clique.frozen_model`)."""
     route = oc.route_training_set(route_train)
     sparse = sparse_subset(route)
     gdesc = oc.group_descriptors(frozen if frozen is not None else oc.frozen_model(), route)
@@ -91,20 +92,21 @@ def methods(route_train, frozen=None) -> list[Method]:
             same_place_threshold=float(route_train.pos_radius), similar_groups=oc.SIMILAR_GROUPS,
             group_descriptors=gdesc)], [0, n])}
     images = np.concatenate([sparse["images"], route["images"]])
-    return [Method(name, "gem", MultiSimilarityLoss(), batches=PlaceBatches(name, images, make, (half, half)))
+    return [Method(name, head, MultiSimilarityLoss(), batches=PlaceBatches(name, images, make, (half, half)))
             for name, make in makers.items()]
 
 
-def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=None) -> dict:
+def run(seeds=SEEDS, workers: int = 2, max_epochs: int | None = None, select=None, head: str = "gem") -> dict:
     """The reproduce profile: the frozen model's failures, then the three arms on ``seeds``, each arm's lr
-    searched. ``select`` (:class:`vpr_nb.recipe.arms.Selection`): only those arms and seeds, as ``{"arms"}``."""
+    searched. ``select`` (:class:`vpr_nb.recipe.arms.Selection`): only those arms and seeds, as ``{"arms"}``.
+    ``head``: the aggregator of every arm (:mod:`vpr_nb.onoff.clique_paper_salad`: SALAD)."""
     seeds = tuple(check_int(s, "seed", minimum=0) for s in seeds)
     recipe = oc.R07 if max_epochs is None else dataclasses.replace(oc.R07, max_epochs=check_int(max_epochs,
                                                                                                 "max_epochs"))
     frozen = oc.frozen_model()
     ds = nm.world_splits()
-    found = run_arms({"near misses": {"train": ds.train, "methods": methods(ds.train, frozen)}}, ds.val, [ds.test],
-                     seeds, recipe, workers=workers, extra=nm._near_misses, select=select)
+    found = run_arms({"near misses": {"train": ds.train, "methods": methods(ds.train, frozen, head)}}, ds.val,
+                     [ds.test], seeds, recipe, workers=workers, extra=nm._near_misses, select=select)
     if select is not None:
         return {"arms": found}
     arms = found["near misses"]
