@@ -904,8 +904,8 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 #
 # * **Eq. (4) at $\sigma = 800$ m is a learning-rate factor.** Over the 10 m radius the weight falls only
 #   from 10 to 8.8; W-T-Loss's gradient is T-Loss's times about 9.4, cosine 1.000.
-# * **Under SGD at one lr, the factor is what trains.** W-T − T = +0.022 ± 0.005 at the paper's lr. In the
-#   premise experiment the placebo gains as much as DW-T-Loss.
+# * **Under SGD at one lr, the factor is what trains.** W-T − T = +0.022 ± 0.005 at the paper's lr. With SGD
+#   the placebo gains as much as DW-T-Loss.
 # * **Under Adam no loss beats the plain triplet loss.** Mean R@1: T 0.862, W-T 0.842, CE 0.840, DW-T 0.842
 #   (paper 0.812, 0.811, 0.797, 0.826). DW-T − T (−0.020 ± 0.009) and CE − T: no measurable effect.
 # * **Where Eq. (4) can rank, it helps.** Random positives within 15 m spread the weight: DW-T − placebo
