@@ -114,6 +114,11 @@ def world_splits(world: str, splits=("train", "val")):
     return make_dataset(w["preset"], seed=w["seed"], size=w["size"], splits=splits, **w["overrides"])
 
 
+def compact_ids(ids) -> np.ndarray:
+    """Ids renumbered 0, 1, 2, ... in sorted order (one per element)."""
+    return np.unique(np.asarray(ids), return_inverse=True)[1].reshape(-1)
+
+
 def training_set(split, groups, clusters) -> dict:
     """A split's training images (database first, then queries) with their geotags, headings, place ids
     (``groups``, numbered compactly) and cluster ids (``clusters``, what Eq. (1) draws; numbered compactly)."""
@@ -122,11 +127,10 @@ def training_set(split, groups, clusters) -> dict:
     if groups.shape != (n,) or clusters.shape != (n,):
         raise ValueError(f"groups and clusters need one id per image of the split ({n}: database, then queries), "
                          f"got shapes {groups.shape} and {clusters.shape}")
-    compact = lambda g: np.unique(g, return_inverse=True)[1].reshape(-1)   # noqa: E731
     return dict(images=np.concatenate([split.db_images, split.q_images]),
                 utm=np.concatenate([split.db_utm, split.q_utm]),
                 heading=np.concatenate([split.db_heading, split.q_heading]),
-                groups=compact(groups), clusters=compact(clusters))
+                groups=compact_ids(groups), clusters=compact_ids(clusters))
 
 
 def _preset(split) -> str | None:

@@ -67,9 +67,8 @@ def sparse_subset(route: dict, stride: int = SPARSE_STRIDE) -> dict:
     if len(np.unique(route["groups"][keep])) < 2 * oc.HALF:
         raise ValueError(f"one place in {stride} leaves {len(np.unique(route['groups'][keep]))} sparse places, "
                          f"fewer than a sparse-only batch's {2 * oc.HALF}; lower the stride")
-    compact = lambda g: np.unique(g, return_inverse=True)[1].reshape(-1)   # noqa: E731
-    return {**{k: v[keep] for k, v in route.items()}, "groups": compact(route["groups"][keep]),
-            "clusters": compact(route["clusters"][keep])}
+    return {**{k: v[keep] for k, v in route.items()}, "groups": oc.compact_ids(route["groups"][keep]),
+            "clusters": oc.compact_ids(route["clusters"][keep])}
 
 
 def methods(route_train, frozen=None, head: str = "gem") -> list[Method]:
