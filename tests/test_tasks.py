@@ -215,6 +215,28 @@ def test_engines_refuse_bad_settings():
         eng.DaskEngine("  ")
 
 
+def _square(x):
+    if x < 0:
+        raise ValueError(f"negative {x}")
+    return x * x
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_an_engines_executor_returns_each_result_or_raises_its_error(workers):
+    """The report starts a notebook when another ends through ``engine.executor()``: one worker runs each call
+    at once, in this process; two run them in forked processes. Either way a call's error reaches its caller."""
+    from concurrent.futures import FIRST_COMPLETED, wait
+    with eng.LocalEngine(workers).executor() as pool:
+        if workers == 1:
+            assert isinstance(pool, eng.InlineExecutor)
+        futures = {pool.submit(_square, x): x for x in (1, 2, 3)}
+        done, _ = wait(futures, return_when=FIRST_COMPLETED)
+        assert done and all(f.result() == futures[f] ** 2 for f in done)
+        assert sorted(f.result() for f in futures) == [1, 4, 9]
+        with pytest.raises(ValueError, match="negative -1"):
+            pool.submit(_square, -1).result()
+
+
 def _searches(world, engine):
     tr, va = world
     recipe = dataclasses.replace(ONE, max_epochs=4, patience=4, lr_grid=(3e-4, 1e-3, 3e-3), search_seeds=2,
@@ -243,7 +265,10 @@ def test_results_are_the_same_bits_on_one_and_two_workers_and_a_dask_cluster(wor
     assert one == _fingerprint(_searches(world, eng.LocalEngine(2)))
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                                   silence_logs=40) as cluster, distributed.Client(cluster) as client:
-        assert one == _fingerprint(_searches(world, eng.DaskEngine(client=client)))
+        dask = eng.DaskEngine(client=client)
+        assert one == _fingerprint(_searches(world, dask))
+        with dask.executor() as pool:     # what the report would submit notebooks through
+            assert [pool.submit(_square, x).result() for x in (2, 3)] == [4, 9]
     assert all(s[2] for s in one.values())                     # halving stopped a rate in both searches
 
 

@@ -8,7 +8,9 @@ given, whatever ran where.
 
 :func:`engine_from_env` picks one: ``$VPR_NB_DASK`` (an address such as ``tcp://10.0.0.5:8786``) gives a
 :class:`DaskEngine`; otherwise ``$VPR_NB_WORKERS`` local processes (default: the caller's ``workers``).
-Every task is seeded on its own, so what an engine returns does not depend on the engine or on its number of
+Both give ``map`` (a round of tasks, results in order) and ``executor()`` (a
+:class:`concurrent.futures.Executor` whose ``submit`` returns futures, for a caller that schedules by itself,
+e.g. the report starting a notebook when one ends). Every task is seeded on its own, so what an engine returns does not depend on the engine or on its number of
 workers; a task that needs pinned kernels calls :func:`require_kernels` where it runs, so a worker started
 without them refuses instead of computing other numbers.
 """
@@ -18,8 +20,9 @@ import json
 import multiprocessing as mp
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from contextlib import contextmanager
 
 from .kernels import NATIVE_ENV, apply_in_process, is_pinned
 
@@ -63,6 +66,18 @@ def _dask_worker_threads() -> int | None:
         return None
 
 
+class InlineExecutor(Executor):
+    """An executor that runs each submitted call at once, in this process (a one-worker :class:`LocalEngine`)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        fut = Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as exc:    # noqa: BLE001 - handed to the caller through the future, as a pool does
+            fut.set_exception(exc)
+        return fut
+
+
 class LocalEngine:
     """Run tasks here (``workers`` = 1) or in ``workers`` forked processes; results in input order."""
 
@@ -78,11 +93,22 @@ class LocalEngine:
         items = list(items)
         if self.workers == 1 or len(items) <= 1:
             return [fn(x) for x in items]
-        if "fork" not in mp.get_all_start_methods():
-            raise ValueError(f"{self.workers} local workers need the 'fork' start method (Linux, macOS); set "
-                             f"{WORKERS_ENV}=1 or use a Dask cluster ({DASK_ENV})")
-        with ProcessPoolExecutor(min(self.workers, len(items)), mp_context=mp.get_context("fork")) as pool:
+        with self.executor(min(self.workers, len(items))) as pool:
             return list(pool.map(fn, items))
+
+    @contextmanager
+    def executor(self, workers: int | None = None) -> Iterator[Executor]:
+        """An executor for ``workers`` (default: the engine's) calls at once: :class:`InlineExecutor` for one,
+        else a pool of forked processes."""
+        workers = self.workers if workers is None else workers
+        if workers == 1:
+            yield InlineExecutor()
+            return
+        if "fork" not in mp.get_all_start_methods():
+            raise ValueError(f"{workers} local workers need the 'fork' start method (Linux, macOS); set "
+                             f"{WORKERS_ENV}=1 or use a Dask cluster ({DASK_ENV})")
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+            yield pool
 
 
 class DaskEngine:
@@ -110,6 +136,12 @@ class DaskEngine:
             return []
         futures = self.client.map(fn, items, pure=False)
         return self.client.gather(futures)
+
+    @contextmanager
+    def executor(self) -> Iterator[Executor]:
+        """The cluster as a :class:`concurrent.futures.Executor` (every call run anew, never cached)."""
+        with self.client.get_executor(pure=False) as pool:
+            yield pool
 
 
 def log_round(t0: float, t1: float, seconds: Sequence[float], reused: Sequence[bool],

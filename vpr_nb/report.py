@@ -40,7 +40,7 @@ from urllib.parse import quote
 
 from . import reproduce_one as one
 from . import schedule
-from .engine import DASK_ENV, TIMES_ENV, WORKERS_ENV
+from .engine import DASK_ENV, TIMES_ENV, WORKERS_ENV, LocalEngine
 from .kernels import cpu_description, pin_this_process
 from .package_data import RESULTS_DIR_ENV, committed_results_dir
 from .report_markdown import NON_FINITE, _table, escape_markdown, format_value, render_table  # noqa: F401 - re-exported
@@ -274,7 +274,7 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     a run started again after an interruption trains only what is missing. Every round of tasks is logged, and
     ``results.json`` / ``results.md`` give the idle share and the simulated scaling (:mod:`vpr_nb.schedule`)."""
     import resource
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures import FIRST_COMPLETED, wait
 
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r}; choose one of {PROFILES} "
@@ -308,22 +308,17 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
               + (f"  {entry['error']}" if entry["error"] else ""), flush=True)
         done[entry["name"]] = entry
 
-    if jobs == 1:
-        for src in sources:
-            started(src)
-            report(_run_one(src, out, profile))
-    else:
-        pending, running = list(sources), {}
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            while pending or running:
-                for src in [p for p in pending if deps[p.stem] <= set(done)][:jobs - len(running)]:
-                    pending.remove(src)
-                    started(src)
-                    running[pool.submit(_run_one, src, out, profile)] = src
-                finished, _ = wait(running, return_when=FIRST_COMPLETED)
-                for fut in finished:
-                    del running[fut]
-                    report(fut.result())
+    pending, running = list(sources), {}
+    with LocalEngine(jobs).executor() as pool:    # jobs = 1: each notebook runs here, one after another
+        while pending or running:
+            for src in [p for p in pending if deps[p.stem] <= set(done)][:jobs - len(running)]:
+                pending.remove(src)
+                started(src)
+                running[pool.submit(_run_one, src, out, profile)] = src
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                del running[fut]
+                report(fut.result())
     entries = [done[p.stem] for p in sources]
     wall = time.perf_counter() - start
     print(f"[done] {len(entries)} notebooks in {wall / 60:.1f} min wall ({profile} profile, {jobs} at once; "
