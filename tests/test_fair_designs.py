@@ -326,7 +326,25 @@ def test_the_papers_comparison_reads_as_stored():
     assert not cp.gate(res).passed
     assert cp.verdicts_of(res)["sparse + dense cliques − sparse only"].word == "inconclusive"
     nb, outputs, scope = _notebook("07_clique_mining")
-    assert "Every run keeps its start" in scope(nb, "07_paper") and "gate: " + cp.gate(res).text() in outputs
+    assert "With GeM every run keeps its start" in scope(nb, "07_paper") and "gate: " + cp.gate(res).text() in outputs
+
+def test_the_papers_comparison_with_salad_reads_as_stored():
+    from vpr_nb.onoff import clique_paper_salad as cps
+    res = _stored("07_paper_salad")
+    so = res["arms"][cps.ARMS[0]]
+    # "with SALAD, sparse only climbs far above its start yet ends below the frozen model"
+    assert len(so["R@1"]) >= 8 and all(a["lr interior"] for a in res["arms"].values())
+    assert np.mean(so["R@1"]) - np.mean(so["start R@1"]) > 0.2 and np.mean(so["R@1"]) < res["frozen"]["R@1"]
+    assert not cps.gate(res).passed
+    v = cps.verdicts_of(res)
+    assert v["sparse + dense cliques − sparse only"].word == "inconclusive"
+    assert v["sparse + dense cliques − sparse + dense random"].word == "no measurable effect"
+    nb, outputs, scope = _notebook("07_clique_mining")
+    text = " ".join(scope(nb, "07_paper_salad").split())
+    assert "With SALAD, sparse only climbs far above its start yet ends below the frozen model" in text
+    assert "With SALAD, cliques − dense random shows no measurable effect" in text
+    assert "gate: " + cps.gate(res).text() in outputs and v["sparse + dense cliques − sparse + dense random"].text() in outputs
+
 
 def test_the_positive_control_reading_follows_its_stored_arms():
     res = _stored("03_control")
