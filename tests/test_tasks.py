@@ -314,6 +314,33 @@ def test_remake_says_which_notebooks_it_can_remake(capsys):
         {("arms", "on", "a"): [0.5], ("SGD lr 0.001", "off", "b"): [0.1]}
 
 
+def test_remake_skips_a_file_without_the_asked_seed(monkeypatch):
+    """``make reproduce NOTEBOOK=03 SEEDS=6``: 03_premise.json has 8 seeds, 03_control.json 5; seed 6 is re-made
+    from the first and the second is skipped with a note, not refused."""
+    from vpr_nb import remake
+
+    calls, said = [], []
+
+    class Fake:
+        def __init__(self, seeds):
+            self.EXPERIMENT = {"seeds": list(seeds)}
+
+        def run(self, seeds, workers, select):
+            calls.append((tuple(seeds), select.seeds))
+            return {"arms": {"on": {"a": {"R@1": [0.25] * len(select.seeds)}}}}
+
+    docs = {"03_x": {"arms": {"on": {"a": {"R@1": [0.5] * 8, "lr": 1e-3}}}},
+            "03_y": {"arms": {"on": {"a": {"R@1": [0.5] * 5, "lr": 1e-3}}}}}
+    monkeypatch.setattr(remake, "EXPERIMENTS", {"03_x": Fake(range(8)), "03_y": Fake(range(5))})
+    monkeypatch.setattr(remake.results, "load", lambda name, _exp: {"results": docs[name]})
+    rows = remake.remake("03", "a", [6], echo=said.append)
+    assert calls == [(tuple(range(8)), (6,))] and [(r["file"], r["seed"], r["re-made"]) for r in rows] == \
+        [("03_x", 6, 0.25)]
+    assert any("03_y: seeds [6] are not among its seeds [0, 1, 2, 3, 4]; skipped" in line for line in said)
+    with pytest.raises(ValueError, match="on seeds \\[9\\]"):
+        remake.remake("03", "a", [9], echo=said.append)
+
+
 # --- an interrupted run resumes ----------------------------------------------------------------------------------
 RUN_TASKS = """
 import sys, hashlib, numpy as np

@@ -62,7 +62,13 @@ def remake(notebook: str, arms: str = "*", seeds=None, *, workers: int = 1, echo
             continue
         lrs = {w: {a: committed_lr for (part, w2, a), committed_lr in _lrs(doc, probes).items() if w2 == w}
                for w in {w for _, w, _ in committed}}
-        select = Selection(arms, None if seeds is None else tuple(seeds), lrs)
+        kept = None if seeds is None else [s for s in seeds if s in all_seeds]
+        if kept is not None and len(kept) < len(seeds):     # e.g. 03's control has 5 seeds, its premise file 8
+            echo(f"{name}: seeds {[s for s in seeds if s not in all_seeds]} are not among its seeds "
+                 f"{list(all_seeds)}" + ("; skipped" if not kept else ""))
+            if not kept:
+                continue
+        select = Selection(arms, None if kept is None else tuple(kept), lrs)
         chosen = select.seeds or all_seeds
         echo(f"{name}: re-making arms {arms!r}, seeds {list(chosen)} ...")
         t0 = time.perf_counter()
@@ -75,7 +81,8 @@ def remake(notebook: str, arms: str = "*", seeds=None, *, workers: int = 1, echo
                              "arm": key[2], "seed": seed, "committed": committed[key][all_seeds.index(seed)],
                              "re-made": value})
     if not rows:
-        raise ValueError(f"no arm of notebook {notebook}'s experiments matches {arms!r}")
+        raise ValueError(f"no arm of notebook {notebook}'s experiments matches {arms!r}"
+                         + ("" if seeds is None else f" on seeds {list(seeds)}"))
     width = max(len(r["arm"]) for r in rows)
     echo(f"\n{'file':11s} {'part':13s} {'arm':{width}s} seed  committed  re-made  difference")
     for r in rows:
