@@ -70,6 +70,7 @@ class InlineExecutor(Executor):
     """An executor that runs each submitted call at once, in this process (a one-worker :class:`LocalEngine`)."""
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
+        """Call ``fn`` with the given arguments now; a finished future holds its result or its error."""
         fut = Future()
         try:
             fut.set_result(fn(*args, **kwargs))
