@@ -263,7 +263,7 @@ def test_salads_fair_test_reads_as_its_stored_results():
     for world in ("on", "off"):
         for arm in sf.COMPARISON:
             a = res["arms"][world][arm]
-            assert len(a["R@1"]) >= 5 and a["lr interior"], (world, arm)                  # "every lr is interior"
+            assert len(a["R@1"]) >= 8 and a["lr interior"], (world, arm)                  # "every lr is interior"
             assert max(a["best epoch"]) < cap - patience, (world, arm)   # "every best epoch lies far before the cap"
     assert all(g.passed for g in sf.gates(res).values())                                  # "both gates pass"
     # "with tall distractors every model finds about one query in ten"
@@ -280,6 +280,17 @@ def test_salads_fair_test_reads_as_its_stored_results():
     for name, v in dv.items():                                              # the notebook prints the dustbin table
         assert f"{name}: {v.text()}" in outputs
     assert "even more of ground and sky" in scope(nb, "05_fair")
+    # "the verdicts follow the prediction, yet the gap without distractors is no smaller"; the takeaway:
+    # "+0.006 ± 0.002 with tall distractors, near the floor, and no smaller without"
+    from vpr_nb.premise.record import premise_verdicts
+    v = premise_verdicts(res["premise"])
+    gaps = res["premise"]["comparisons"]["Sinkhorn − softmax"]
+    assert v["Sinkhorn − softmax, premise on"].word == "helps"
+    assert v["Sinkhorn − softmax, premise off"].word == "no measurable effect"
+    assert np.mean(gaps["off"]) >= np.mean(gaps["on"])
+    assert "yet the gap without distractors is no smaller" in " ".join(scope(nb, "05_fair").split())
+    takeaways = "".join(c.source for c in nb.cells if c.cell_type == "markdown" and "## Takeaways" in c.source)
+    assert f"{v['Sinkhorn − softmax, premise on'].text().split(' (')[0]} with" in " ".join(takeaways.split())
 
 
 def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
