@@ -199,6 +199,22 @@ def test_parallel_run_waits_for_the_notebook_it_reads(tmp_path, monkeypatch):
     assert [nb["results"] for nb in data["notebooks"]] == [{"04_a": {"n": 4}}, {"05_b": {"n": 5}}, {"06_c": {"n": 6}}]
 
 
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_notebooks_that_read_each_other_run_in_order(tmp_path, monkeypatch, jobs):
+    """A cycle of notebooks naming each other cannot wait for one another: the next in order starts."""
+    monkeypatch.delenv(RESULTS_ENV, raising=False)
+    nbdir = tmp_path / "nbs"
+    nbdir.mkdir()
+    for stem, other in (("04_a", "05_b"), ("05_b", "04_a")):
+        _write_nb(nbdir / f"{stem}.ipynb", [(["parameters"], 'PROFILE = "x"'),
+                                            ([], f"# reads '{other}'\nfrom vpr_nb.report import record; "
+                                                 f"record('{stem}', {{'n': 1}})")])
+    assert report.notebook_dependencies(sorted(nbdir.glob("*.ipynb"))) == {"04_a": {"05_b"}, "05_b": {"04_a"}}
+    out = tmp_path / "reports"
+    assert report.main(["--profile", "ci", "--out", str(out), "--notebooks-dir", str(nbdir), "--jobs", jobs]) == 0
+    assert [nb["name"] for nb in json.loads((out / "results.json").read_text())["notebooks"]] == ["04_a", "05_b"]
+
+
 def test_environment_header_records_the_cpu_kernels(monkeypatch):
     # trained numbers depend on the CPU kernels: the header says which, pinned (vpr_nb.kernels) or native
     import torch

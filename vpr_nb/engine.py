@@ -10,9 +10,10 @@ given, whatever ran where.
 :class:`DaskEngine`; otherwise ``$VPR_NB_WORKERS`` local processes (default: the caller's ``workers``).
 Both give ``map`` (a round of tasks, results in order) and ``executor()`` (a
 :class:`concurrent.futures.Executor` whose ``submit`` returns futures, for a caller that schedules by itself,
-e.g. the report starting a notebook when one ends). Every task is seeded on its own, so what an engine returns does not depend on the engine or on its number of
-workers; a task that needs pinned kernels calls :func:`require_kernels` where it runs, so a worker started
-without them refuses instead of computing other numbers.
+e.g. the report starting a notebook when one ends). Every task is seeded on its own, so what an engine returns
+does not depend on the engine or on its number of workers; a task that needs pinned kernels calls
+:func:`require_kernels` where it runs, so a worker started without them refuses instead of computing other
+numbers.
 """
 from __future__ import annotations
 

@@ -311,7 +311,8 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     pending, running = list(sources), {}
     with LocalEngine(jobs).executor() as pool:    # jobs = 1: each notebook runs here, one after another
         while pending or running:
-            for src in [p for p in pending if deps[p.stem] <= set(done)][:jobs - len(running)]:
+            ready = [p for p in pending if deps[p.stem] <= set(done)] or pending[:not running]   # a cycle: in order
+            for src in ready[:jobs - len(running)]:
                 pending.remove(src)
                 started(src)
                 running[pool.submit(_run_one, src, out, profile)] = src
