@@ -216,6 +216,12 @@ def _notebook(stem: str):
     return nb, _outputs(nb), _scope
 
 
+def _takeaways(nb) -> str:
+    """A notebook's Takeaways text (:func:`test_takeaways.takeaways`), its whitespace collapsed."""
+    from test_takeaways import takeaways
+    return " ".join(" ".join(takeaways(nb)).split())
+
+
 def test_the_near_miss_world_holds_the_premise_and_its_verdict_is_stated_as_stored():
     res = _stored("07_nearmiss")
     fz = res["frozen"]
@@ -289,8 +295,7 @@ def test_salads_fair_test_reads_as_its_stored_results():
     assert v["Sinkhorn − softmax, premise off"].word == "no measurable effect"
     assert np.mean(gaps["off"]) >= np.mean(gaps["on"])
     assert "yet the gap without distractors is no smaller" in " ".join(scope(nb, "05_fair").split())
-    takeaways = "".join(c.source for c in nb.cells if c.cell_type == "markdown" and "## Takeaways" in c.source)
-    assert f"{v['Sinkhorn − softmax, premise on'].text().split(' (')[0]} with" in " ".join(takeaways.split())
+    assert f"{v['Sinkhorn − softmax, premise on'].text().split(' (')[0]} with" in _takeaways(nb)
 
 
 def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
@@ -315,10 +320,9 @@ def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
     nb, outputs, scope = _notebook("03_distance_ranking_weighted_loss")
     text = scope(nb, "03_premise")
     assert "does not survive Holm's correction" in text
-    takeaways = "".join(c.source for c in nb.cells if c.cell_type == "markdown" and "## Takeaways" in c.source)
     for name in ("DW-T-Loss − T-Loss, premise on", "DW-T-Loss − placebo, premise on"):
         assert v[name].text() in outputs, name
-        assert f"({v[name].text().split(' (')[0]})" in takeaways, name
+        assert f"({v[name].text().split(' (')[0]})" in _takeaways(nb), name
 
 
 
