@@ -816,7 +816,7 @@ axes[0].set_xticks(xs, [s.removeprefix("dustbin share, ") for s in SHARES], font
 axes[0].set(ylabel="dustbin share of a cell's mass", ylim=(0.5, 1.0), title="premise on, mean over seeds")
 axes[0].legend(fontsize=8)
 for k, (world, colour) in enumerate((("on", "tab:green"), ("off", "tab:grey"))):
-    d = tres["premise"]["comparisons"]["Sinkhorn − softmax"][world]
+    d = gaps[world]
     m, se = paired_gap(d)
     axes[1].bar(k, m, 0.6, yerr=2 * se, capsize=3, color=colour, alpha=0.6)
     axes[1].scatter([k] * len(d), d, color="k", s=8, zorder=3)
