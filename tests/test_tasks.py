@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from vpr_nb import engine as eng
+from vpr_nb.losses import DWTripletLoss
 from vpr_nb.recipe import RECIPE, FineTuneTask, Method, drive, run_task, search_methods, search_rounds
 from vpr_nb.recipe import task as task_mod
 from vpr_nb.synthetic import make_dataset
@@ -124,17 +125,12 @@ def test_two_runs_writing_one_store_at_once_leave_a_whole_entry(tmp_path):
 
 
 # --- the key -----------------------------------------------------------------------------------------------------
-def test_package_digest_follows_the_package_and_not_the_notebooks(tmp_path):
-    pkg, nbs = tmp_path / "vpr_nb", tmp_path / "notebooks"
-    (pkg / "samplers").mkdir(parents=True)
-    nbs.mkdir()
-    (pkg / "samplers" / "clique.py").write_text("X = 1\n")
-    (nbs / "07_clique_mining.py").write_text("# text\n")
-    before = task_mod.package_digest(pkg)
-    (nbs / "07_clique_mining.py").write_text("# other text\n")
-    assert task_mod.package_digest(pkg) == before              # a notebook's text is not the task's code
-    (pkg / "samplers" / "clique.py").write_text("X = 2\n")
-    assert task_mod.package_digest(pkg) != before              # a module the task runs is
+def test_the_key_follows_the_code_the_task_runs(world):
+    tr, va = world
+    task = FineTuneTask(Method("GeM", "gem"), tr, va, ONE, 0, 1e-3)
+    assert task.key_parts()["package"] == task_mod.package_digest(sorted(task_mod.code_modules(task.method, tr, va)))
+    other = FineTuneTask(Method("DW-T", "netvlad", DWTripletLoss(sigma=18.0, eps=0.1)), tr, va, ONE, 0, 1e-3)
+    assert "vpr_nb.losses.triplet" in task_mod.code_modules(other.method)  # the module of its loss (test_code_digest)
 
 
 def test_the_key_holds_every_part_of_the_task(world):
@@ -168,7 +164,7 @@ def test_a_stored_result_is_reused_only_under_its_whole_key(world, tmp_path, mon
     assert same_weights(first.model, again.model) and same_weights(first.start, again.start)
     assert again.history.to_dict() == first.history.to_dict()
     # the package changed (a module the task runs): the key moves, the task runs again
-    monkeypatch.setattr(task_mod, "package_digest", lambda root=None: "0" * 64)
+    monkeypatch.setattr(task_mod, "package_digest", lambda modules=(), root=None: "0" * 64)
     rerun = run_task(FineTuneTask(Method("GeM", "gem"), tr, va, ONE, 0, 1e-3))
     assert not rerun.reused and same_weights(rerun.model, first.model)
     # a damaged entry is run again, with the same bits

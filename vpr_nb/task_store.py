@@ -18,9 +18,9 @@ mismatched pair into a miss.
 
 Where it lives: ``$VPR_NB_TASK_STORE`` (:data:`STORE_ENV`); :func:`store_from_env` returns None when it is unset
 or ``off``, and then nothing is cached. ``make reproduce`` sets it to ``reports/task-store`` (``make clean``
-removes it; so does deleting the folder). Committed results never read a store they did not fill in the same
-run: the key holds the package's source digest (:mod:`vpr_nb.recipe.task`), so a store from another commit
-serves nothing.
+removes it; so does deleting the folder). A store from another commit serves only the tasks whose code is the
+same there: the key holds a digest of the package code a task runs (:mod:`vpr_nb.recipe.task`,
+:mod:`vpr_nb.code_digest`), so a result made by other code is never read.
 """
 from __future__ import annotations
 

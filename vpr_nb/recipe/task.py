@@ -10,20 +10,25 @@ halving's first rung, the epochs after which it stops. Its **key** (:meth:`FineT
   set by its file names, sizes and modification times);
 - how the kernels run (pinned or native, and the processor when native), the Python, torch, numpy, scipy and
   faiss versions;
-- the package's source: a digest of every file under ``vpr_nb/`` (its ``.py`` modules and its weights,
-  :func:`package_digest`). Any change to the package re-runs every task; a notebook's text changes nothing.
+- the package code it runs (:func:`package_digest`): the source of this module, of the modules that define
+  the classes and functions inside its method and splits (a sampler, a loss, a split type), of everything
+  those import (followed statically, :mod:`vpr_nb.code_digest`) and of the package's data files (its
+  weights). A change to one of them re-runs the task; a change to another module (a report, a plot, a
+  grader, an experiment that does not build this task's objects) or to a notebook's text changes nothing.
 
 Where it could still miss a change (documented in docs/reproduction.md): code outside the package that a
 task calls by name (a function defined in a notebook and passed as a method's batch source pickles as its
-name, not its body), libraries other than those named, and files on disk rewritten with the same size and
-time. A user notices through ``make reproduce``'s comparison with the committed numbers, or by running with
+name, not its body), code reached without an import statement, libraries other than those named, and files
+on disk rewritten with the same size and time. A user notices through ``make reproduce``'s comparison with the committed numbers, or by running with
 the store switched off (``STORE=off``), which gives the same bits when nothing was missed.
 """
 from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import hashlib
+import inspect
 import os
 import pickle
 import platform
@@ -31,13 +36,12 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from .._checks import check_int, check_positive
+from ..code_digest import code_digest, import_graph
 from ..engine import require_kernels
 from ..feature_cache import FrozenFeatureCache, detach
 from ..kernels import cpu_description, is_pinned
@@ -47,28 +51,48 @@ from .method import Method, _check_method
 from .protocol import Recipe, _check_recipe
 from .start import build_start, make_source
 
-KEY_FORMAT = 1
-PACKAGE_DIR = Path(__file__).resolve().parent.parent
+KEY_FORMAT = 2                 # 2: the package part covers the code the task runs, not the whole package
 
 
-def package_digest(root=None) -> str:
-    """SHA-256 over every file of the package folder ``root`` (default: this installed package; relative path
-    and bytes, caches skipped): the code a task runs. The installed package's is read once per process (a
-    kernel runs the code it imported until it restarts)."""
-    if root is None:
-        return _installed_digest()
-    root = Path(root)
-    h = hashlib.sha256()
-    for path in sorted(root.rglob("*")):
-        if path.is_file() and "__pycache__" not in path.parts and path.suffix not in (".pyc", ".tmp"):
-            h.update(path.relative_to(root).as_posix().encode() + b"\0")
-            h.update(path.read_bytes() + b"\0")
-    return h.hexdigest()
+def code_modules(*objects) -> set[str]:
+    """The package modules that define the classes and functions found inside ``objects`` (their fields, items,
+    attributes, partials' functions and arguments; arrays are not entered), with this module: the starting
+    points of :func:`package_digest`."""
+    found, seen, todo = {__name__}, set(), list(objects)
+    known = import_graph()
+    while todo:
+        value = todo.pop()
+        if value is None or isinstance(value, (bool, int, float, str, bytes, np.ndarray, np.generic, torch.Tensor)):
+            continue
+        if id(value) in seen:
+            continue
+        seen.add(id(value))
+        for owner in (value, type(value)):
+            module = getattr(owner, "__module__", None)
+            if isinstance(module, str) and module in known:
+                found.add(module)
+        if isinstance(value, type):
+            continue
+        if isinstance(value, dict):
+            todo.extend(value.values())
+        elif isinstance(value, (list, tuple, set, frozenset)):
+            todo.extend(value)
+        elif isinstance(value, functools.partial):
+            todo.extend([value.func, *value.args, *value.keywords.values()])
+        elif hasattr(value, "__self__") and hasattr(value, "__func__"):      # a bound method
+            todo.extend([value.__self__, value.__func__])
+        elif dataclasses.is_dataclass(value):
+            todo.extend(getattr(value, f.name, None) for f in dataclasses.fields(value))
+        elif hasattr(value, "__dict__") and not inspect.isroutine(value) and not inspect.ismodule(value):
+            todo.extend(vars(value).values())
+    return found
 
 
-@lru_cache(maxsize=1)
-def _installed_digest() -> str:
-    return package_digest(PACKAGE_DIR)
+def package_digest(modules=(__name__,), root=None) -> str:
+    """SHA-256 over the package code that ``modules`` run (:func:`vpr_nb.code_digest.code_digest`: their source,
+    what they import, the package's data files). ``root``: a package folder (default: this installed package,
+    read once per process: a kernel runs the code it imported until it restarts)."""
+    return code_digest(modules, root)
 
 
 def _value_digest(h, value, seen=None) -> None:
@@ -188,7 +212,8 @@ class FineTuneTask:
                 "batches": _object_digest(self.method.batches),
                 "recipe": dataclasses.asdict(self.recipe), "seed": self.seed, "lr": self.lr,
                 "stop_after": self.stop_after, "train": split_digest(self.train), "val": split_digest(self.val),
-                "runtime": {**runtime_parts(), "pinned": self.pinned}, "package": package_digest()}
+                "runtime": {**runtime_parts(), "pinned": self.pinned},
+                "package": package_digest(sorted(code_modules(self.method, self.train, self.val)))}
 
     def key(self) -> str:
         if self._key is None:
