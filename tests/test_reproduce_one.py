@@ -103,6 +103,19 @@ def test_the_estimate_adds_the_premise_experiment(tmp_path):
     assert "its probes 10 min (2026-12-05, c123456)" in est.source
 
 
+def test_the_estimate_of_a_run_started_again_counts_its_reused_fine_tunes_at_their_own_times(tmp_path):
+    path = _results_file(tmp_path / "03_loss.json", {"rows": {}, "seconds": 120.0}, commit="a464538")
+    doc = json.loads(path.read_text())
+    doc["stamp"]["fine-tunes"] = {"run": 40, "reused": 30, "task seconds": 6000.0}
+    path.write_text(json.dumps(doc))
+    est = one.estimate("03_loss", "reproduce", tmp_path)
+    assert est.low == 6000.0 / one.RUN_WORKERS                    # not the 2 min the restarted run took
+    assert "30 fine-tunes reused, counted at their own times" in est.source
+    doc["stamp"]["fine-tunes"] = {"run": 40, "reused": 0, "task seconds": 6000.0}
+    path.write_text(json.dumps(doc))
+    assert one.estimate("03_loss", "reproduce", tmp_path).low == 120.0   # nothing reused: its own seconds
+
+
 def test_the_estimate_without_committed_results_or_without_any_timing(tmp_path):
     est = one.estimate("02_base", "reproduce", tmp_path)                        # 02 keeps no committed results
     assert est.low == est.high == one.MEASURED_MINUTES["02"] * 60 and est.text() == "about 6.6 min"
@@ -313,6 +326,28 @@ def test_run_report_tells_the_heartbeat_and_runs_the_given_notebooks(tmp_path, m
     payload = report.run_report("ci", tmp_path / "out", tmp_path / "nbs", sources=sources[2:3], heartbeat=Beat())
     assert [nb["name"] for nb in payload["notebooks"]] == ["03_loss"]
     assert events == [("start", "03_loss"), ("stop", "03_loss")]
+    assert [a["ended"] for a in payload["attempts"]["attempts"]] == [True]      # one attempt, finished
+
+
+def test_a_run_started_again_reports_its_earlier_attempts(tmp_path, monkeypatch, capsys):
+    sources = _sources(tmp_path / "nbs")
+    monkeypatch.setattr(report, "_run_one", lambda src, out, profile: {
+        "name": src.stem, "status": "ok", "error": "", "seconds": 0.1, "results": {}, "figures": []})
+    monkeypatch.setattr(report, "pin_this_process", lambda: [])
+    monkeypatch.setattr(report, "environment_header", lambda profile: {"profile": profile, "git commit": "abc1234"})
+    out, store = tmp_path / "out", tmp_path / "store"
+    out.mkdir()
+    killed = {"kind": "start", "time": 1000.0, "commit": "abc1234", "profile": "reproduce",
+              "notebooks": ["03_loss.ipynb"], "store": str(store.resolve())}
+    (out / "attempts.jsonl").write_text(json.dumps(killed) + "\n" + json.dumps({"kind": "alive", "time": 1300.0})
+                                        + "\n")
+    payload = report.run_report("reproduce", out, tmp_path / "nbs", sources=sources[2:3], store=store)
+    assert "attempt 2 of this run: 1 earlier attempt(s) stopped after 5.0 min" in capsys.readouterr().out
+    runs = payload["attempts"]
+    assert [(a["minutes"], a["ended"]) for a in runs["attempts"]][0] == (5.0, False) and runs["minutes"] >= 5.0
+    assert "| 1 | abc1234 | 5.0 | no (stopped) |" in (out / "results.md").read_text()
+    again = report.run_report("reproduce", out, tmp_path / "nbs", sources=sources[2:3], store=store)
+    assert len(again["attempts"]["attempts"]) == 1                    # the run had finished: a new run
 
 
 def test_the_command_line_options(tmp_path, capsys):

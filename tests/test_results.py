@@ -25,6 +25,23 @@ def test_save_then_load_round_trip(tmp_path):
     assert got["results"] == {"R@1": {"T": [0.5, 0.6]}}
 
 
+def test_the_stamp_counts_the_fine_tunes_logged_since_the_last_save(tmp_path, monkeypatch):
+    log = tmp_path / "03.tasks.jsonl"
+    monkeypatch.setenv(results.TIMES_ENV, str(log))
+    log.write_text(json.dumps({"t0": 0, "t1": 9, "seconds": [60.0, 90.0], "reused": [True, False]}) + "\n"
+                   + json.dumps({"t0": 9, "t1": 12, "seconds": [30.0], "reused": [True]}) + "\n"
+                   + '{"t0": 12, "sec')                                  # a torn last line: not counted yet
+    first = json.loads(results.save("99_demo", {}, {"x": 1}, results_dir=tmp_path).read_text())
+    assert first["stamp"]["fine-tunes"] == {"run": 3, "reused": 2, "task seconds": 180.0}
+    with log.open("a") as fh:
+        fh.write('onds": [1], "t1": 13, "reused": [false]}\n')       # the torn line, finished
+        fh.write(json.dumps({"t0": 13, "t1": 14, "seconds": [5.0], "reused": [False]}) + "\n")
+    second = json.loads(results.save("99_other", {}, {"x": 1}, results_dir=tmp_path).read_text())
+    assert second["stamp"]["fine-tunes"] == {"run": 2, "reused": 0, "task seconds": 6.0}   # only what came after
+    third = json.loads(results.save("99_third", {}, {"x": 1}, results_dir=tmp_path).read_text())
+    assert "fine-tunes" not in third["stamp"]                            # nothing since
+
+
 def test_load_refuses_stale_or_missing_results(tmp_path):
     results.save("99_demo", {"epochs": 10, "lr": 0.01}, {"x": 1}, results_dir=tmp_path)
     with pytest.raises(ValueError, match=r"stale.*\['epochs'\]"):

@@ -39,7 +39,7 @@ from pathlib import Path
 from urllib.parse import quote
 
 from . import reproduce_one as one
-from . import schedule
+from . import run_attempts, schedule
 from .engine import DASK_ENV, TIMES_ENV, WORKERS_ENV, LocalEngine
 from .kernels import cpu_description, pin_this_process
 from .package_data import RESULTS_DIR_ENV, committed_results_dir
@@ -294,6 +294,13 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     header = environment_header(profile)
     os.environ[STORE_ENV] = str(Path(store).resolve()) if store else "off"     # the kernels inherit it
     start, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
+    attempt = run_attempts.Attempt(out / "attempts.jsonl")
+    earlier = attempt.begin(commit=header.get("git commit"), profile=profile, notebooks=[p.name for p in sources],
+                            store=os.environ[STORE_ENV] if store else None)
+    if earlier:
+        print(f"[....] attempt {len(earlier) + 1} of this run: {len(earlier)} earlier attempt(s) stopped after "
+              f"{sum(a['last'] - a['start'] for a in earlier) / 60:.1f} min; finished fine-tunes are reused",
+              flush=True)
     done: dict[str, dict] = {}
 
     def started(src):
@@ -322,16 +329,20 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
                 report(fut.result())
     entries = [done[p.stem] for p in sources]
     wall = time.perf_counter() - start
+    attempt.end()
+    attempts = run_attempts.summary(run_attempts.read(out / "attempts.jsonl"))
     print(f"[done] {len(entries)} notebooks in {wall / 60:.1f} min wall ({profile} profile, {jobs} at once; "
           f"{sum(e['seconds'] for e in entries) / 60:.1f} min of notebook time)", flush=True)
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     tasks = schedule.run_summary(entries, {e["name"]: schedule.read_rounds(out / "records" / f"{e['name']}.tasks.jsonl")
                                            for e in entries}, wall, cpu1.ru_utime + cpu1.ru_stime
                                  - cpu0.ru_utime - cpu0.ru_stime, os.cpu_count() or 1)
-    payload = {"header": header, "notebooks": entries, "wall_seconds": round(wall, 1), "jobs": jobs, "tasks": tasks}
+    payload = {"header": header, "notebooks": entries, "wall_seconds": round(wall, 1), "jobs": jobs, "tasks": tasks,
+               "attempts": attempts}
     (out / "results.json").write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
     (out / "results.md").write_text(render_markdown(header, entries) + "\n".join(schedule.summary_markdown(tasks))
-                                    + "\n", encoding="utf-8")
+                                    + "\n" + "\n".join(run_attempts.summary_markdown(attempts)) + "\n",
+                                    encoding="utf-8")
     return payload
 
 

@@ -105,8 +105,18 @@ def _run_seconds(path: Path):
             and seconds > 0):
         return None
     stamp = doc.get("stamp") if isinstance(doc.get("stamp"), dict) else {}
-    return float(seconds), ", ".join(str(stamp[k]) for k in ("date", "git commit") if stamp.get(k))
+    where = ", ".join(str(stamp[k]) for k in ("date", "git commit") if stamp.get(k))
+    tasks = stamp.get("fine-tunes") if isinstance(stamp.get("fine-tunes"), dict) else {}
+    task_seconds, reused = tasks.get("task seconds"), tasks.get("reused")
+    if isinstance(reused, int) and reused > 0 and isinstance(task_seconds, (int, float)) \
+            and math.isfinite(task_seconds) and task_seconds / RUN_WORKERS > seconds:
+        # made by a run started again after an interruption: its seconds are what was left; its fine-tunes'
+        # own times, run RUN_WORKERS at a time, are the whole
+        return float(task_seconds) / RUN_WORKERS, where + f"; {reused} fine-tunes reused, counted at their own times"
+    return float(seconds), where
 
+
+RUN_WORKERS = 2            # a reproduce run's fine-tunes run this many at a time on the 2 cores
 
 # a notebook's package experiments, each in its own results file NN_<kind>.json (vpr_nb.onoff), timed apart
 EXTRAS = {"premise": "premise experiment", "probes": "probes", "control": "positive control",

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import torch
 
+from .engine import TIMES_ENV
 from .package_data import committed_results_dir, results_dir_for_writing
 from .report import jsonable, environment_header, uncommitted_changes
 from .models import read_weights
@@ -48,6 +49,34 @@ from .synthetic.config import OPTIONAL_CONTENT, WorldConfig
 
 
 ALLOW_DIRTY_ENV = "VPR_NB_ALLOW_DIRTY"   # =1: a trial reproduce run may save from a dirty tree
+_TASKS_COUNTED: dict[str, int] = {}      # a task-times file -> its bytes already counted by a save here
+
+
+def tasks_since_last_save(environ=None) -> dict | None:
+    """The fine-tunes this process logged (``$VPR_NB_TASK_TIMES``, :func:`vpr_nb.engine.log_round`) since its
+    last :func:`save`: ``{"run": n, "reused": m, "task seconds": s}``, where a task reused from the task store
+    counts the time it took when it ran; None when nothing is logged. A results file made by a run that was
+    interrupted and started again records a short ``seconds`` (only what was left to do) and its whole cost
+    here."""
+    path = (os.environ if environ is None else environ).get(TIMES_ENV, "").strip()
+    if not path or not os.path.isfile(path):
+        return None
+    data = Path(path).read_bytes()
+    start = _TASKS_COUNTED.get(path, 0)
+    start = start if start <= len(data) else 0          # the file was started again
+    end = data.rfind(b"\n") + 1                          # whole lines only
+    _TASKS_COUNTED[path] = max(end, start)
+    seconds, reused = [], []
+    for line in data[start:end].splitlines():
+        try:
+            r = json.loads(line)
+            seconds += [float(x) for x in r["seconds"]]
+            reused += [bool(x) for x in r["reused"]]
+        except (ValueError, KeyError, TypeError):
+            continue                                     # a torn or foreign line
+    if not seconds:
+        return None
+    return {"run": len(seconds), "reused": sum(reused), "task seconds": round(sum(seconds), 1)}
 
 
 def _canonical(value):
@@ -128,7 +157,8 @@ def results_path(name: str, results_dir, *, write: bool = False) -> Path:
 
 def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> Path:
     """Write ``results`` (numbers, strings, lists, dicts) for notebook ``name`` with its ``config``
-    and a stamp (git commit, date, versions), atomically. Returns the path.
+    and a stamp (git commit, date, versions, and the fine-tunes logged since the last save,
+    :func:`tasks_since_last_save`), atomically. Returns the path.
 
     Refuses (``ValueError`` naming the key path) results that :func:`load` would refuse: a NaN / inf, or a
     number outside its metric's range (a recall above 1, a negative count, …)."""
@@ -149,6 +179,9 @@ def save(name: str, config: Mapping, results: Mapping, *, results_dir=None) -> P
                          f"a clean commit. Commit (or stash) first; for a trial run set {ALLOW_DIRTY_ENV}=1 "
                          f"(the file is then stamped 'with uncommitted changes' and must not be committed)")
     stamp["date"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d")
+    tasks = tasks_since_last_save()
+    if tasks is not None:
+        stamp["fine-tunes"] = tasks
     doc = {"notebook": name, "stamp": stamp, "course_backbone": backbone_fingerprint(),
            "worlds": world_fingerprints(config), "config": _canonical(config), "results": _canonical(results)}
     path.parent.mkdir(parents=True, exist_ok=True)
