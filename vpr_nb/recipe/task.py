@@ -19,8 +19,9 @@ halving's first rung, the epochs after which it stops. Its **key** (:meth:`FineT
 Where it could still miss a change (documented in docs/reproduction.md): code outside the package that a
 task calls by name (a function defined in a notebook and passed as a method's batch source pickles as its
 name, not its body), code reached without an import statement, libraries other than those named, and files
-on disk rewritten with the same size and time. A user notices through ``make reproduce``'s comparison with the committed numbers, or by running with
-the store switched off (``STORE=off``), which gives the same bits when nothing was missed.
+on disk rewritten with the same size and time. A user notices through ``make reproduce``'s comparison with the
+committed numbers, or by running with the store switched off (``STORE=off``), which gives the same bits when
+nothing was missed.
 """
 from __future__ import annotations
 
