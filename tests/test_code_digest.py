@@ -39,6 +39,9 @@ def test_the_digest_follows_the_code_a_task_imports_and_nothing_else(tmp_path):
     (tmp_path / "notebooks" / "07_clique_mining.py").write_text("# other text\n")
     (pkg / "report.py").write_text("from .task import run  # a module that imports the task, not one it runs\n")
     assert cd.code_digest(["vpr_nb.task"], pkg) == before
+    (pkg / "task.py").write_text('def run():\n    """Run it."""\n    from .samplers import clique  # lazily\n\n'
+                                 '    return (clique.X)\n')
+    assert cd.code_digest(["vpr_nb.task"], pkg) == before            # a docstring, a comment, a reflowed line
     (pkg / "samplers" / "clique.py").write_text("X = 2\n")        # a module the task imports (lazily)
     changed = cd.code_digest(["vpr_nb.task"], pkg)
     assert changed != before

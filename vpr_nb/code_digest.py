@@ -4,13 +4,15 @@ package, so that a change to an unrelated module (a report, a plot, a grader) ke
 :func:`import_graph` reads every module of a package folder with :mod:`ast` and lists the package modules each
 one imports: at module level and inside functions (a lazy import runs too), absolute (``import vpr_nb.x``,
 ``from vpr_nb.x import y``) and relative (``from ..x import y``); ``from p import name`` counts ``p.name`` when
-that is a module, else ``p``. :func:`closure` follows those edges from some modules and adds every parent package (its
-``__init__`` runs on import). :func:`code_digest` hashes the source of that closure and every data file of
-the package (the shipped weights): path and bytes, in a fixed order.
+that is a module, else ``p``. :func:`closure` follows those edges from some modules and adds every parent
+package (its ``__init__`` runs on import). :func:`code_digest` hashes that closure, each module by its syntax
+tree without docstrings (a comment, a docstring or a reflowed line is not a change), and every data file of the
+package (the shipped weights) by its bytes: path and content, in a fixed order.
 
-What it cannot see: code reached without an import statement (``importlib.import_module`` with a computed
-name, ``__import__``; the package has none outside its grader, which names them only to refuse them) and code
-outside the package. ``tests/test_code_digest.py`` checks the graph against grimp's (import-linter's).
+What it cannot see: a program that reads its own docstrings (none that a task runs), code reached without an
+import statement (``importlib.import_module`` with a computed name, ``__import__``; the package has none outside
+its grader, which names them only to refuse them) and code outside the package. ``tests/test_code_digest.py``
+checks the graph against grimp's (import-linter's).
 """
 from __future__ import annotations
 
@@ -100,9 +102,25 @@ def closure(modules, root=None) -> frozenset[str]:
     return frozenset(seen)
 
 
+def _file_digest(path: Path) -> bytes:
+    """A Python module by its syntax tree without docstrings (so a comment, a docstring or a reflowed line
+    changes nothing), any other file by its bytes."""
+    data = path.read_bytes()
+    if path.suffix == ".py":
+        tree = ast.parse(data, str(path))
+        for node in ast.walk(tree):
+            body = getattr(node, "body", None)
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body \
+                    and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+                    and isinstance(body[0].value.value, str):
+                node.body = body[1:] or [ast.Pass()]
+        data = ast.dump(tree, include_attributes=False).encode()
+    return hashlib.sha256(data).digest()
+
+
 @lru_cache(maxsize=None)
 def _installed_file_digest(path: Path) -> bytes:
-    return hashlib.sha256(path.read_bytes()).digest()
+    return _file_digest(path)
 
 
 def code_digest(modules, root=None) -> str:
@@ -118,5 +136,5 @@ def code_digest(modules, root=None) -> str:
     h = hashlib.sha256()
     for path in sorted([files[n] for n in names] + data):
         h.update(path.relative_to(root).as_posix().encode() + b"\0")
-        h.update(_installed_file_digest(path) if installed else hashlib.sha256(path.read_bytes()).digest())
+        h.update(_installed_file_digest(path) if installed else _file_digest(path))
     return h.hexdigest()

@@ -52,7 +52,7 @@ from .method import Method, _check_method
 from .protocol import Recipe, _check_recipe
 from .start import build_start, make_source
 
-KEY_FORMAT = 2                 # 2: the package part covers the code the task runs, not the whole package
+KEY_FORMAT = 3                 # 3: the package part covers the code the task runs, by syntax tree
 
 
 def code_modules(*objects) -> set[str]:
