@@ -350,6 +350,46 @@ def test_a_run_started_again_reports_its_earlier_attempts(tmp_path, monkeypatch,
     assert len(again["attempts"]["attempts"]) == 1                    # the run had finished: a new run
 
 
+def test_a_run_started_again_skips_the_notebooks_an_attempt_finished_from_the_same_commit(tmp_path, monkeypatch,
+                                                                                          capsys):
+    sources = _sources(tmp_path / "nbs")
+    ran = []
+
+    def fake_run_one(src, out, profile):
+        ran.append(src.stem)
+        (out / "notebooks" / f"{src.stem}.ipynb").write_text("{}")
+        (out / "figures" / f"{src.stem}_1_0.png").write_bytes(b"png")
+        return {"name": src.stem, "status": "ok", "error": "", "seconds": 0.1, "results": {}, "figures": []}
+
+    monkeypatch.setattr(report, "_run_one", fake_run_one)
+    monkeypatch.setattr(report, "pin_this_process", lambda: [])
+    monkeypatch.setattr(report, "environment_header", lambda profile: {"profile": profile, "git commit": "abc1234"})
+    out, store = tmp_path / "out", tmp_path / "store"
+    (out / "notebooks").mkdir(parents=True)
+    (out / "figures").mkdir()
+    (out / "notebooks" / "03_loss.ipynb").write_text("{}")       # what the killed attempt left of 03
+    (out / "figures" / "03_loss_4_0.png").write_bytes(b"png")
+    (out / "figures" / "05_salad_2_0.png").write_bytes(b"png")  # 05 had not finished
+    names = [p.name for p in sources[2:5]]
+    entry = {"name": "03_loss", "status": "ok", "error": "", "seconds": 600.0, "results": {}, "figures": []}
+    lines = [{"kind": "start", "time": 1000.0, "commit": "abc1234", "profile": "reproduce", "notebooks": names,
+              "store": str(store.resolve())}, {"kind": "notebook", "time": 1600.0, "entry": entry},
+             {"kind": "alive", "time": 1700.0}]
+    (out / "attempts.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    payload = report.run_report("reproduce", out, tmp_path / "nbs", sources=sources[2:5], store=store)
+    assert sorted(ran) == ["04_netvlad", "05_salad"]                     # 03 was finished: kept, not run
+    assert "the notebooks they finished: 03_loss" in capsys.readouterr().out
+    assert [nb["name"] for nb in payload["notebooks"]] == ["03_loss", "04_netvlad", "05_salad"]
+    assert payload["notebooks"][0]["seconds"] == 600.0                     # its entry from the earlier attempt
+    assert (out / "figures" / "03_loss_4_0.png").exists() and not (out / "figures" / "05_salad_2_0.png").exists()
+    # another commit: every notebook runs again
+    (out / "attempts.jsonl").write_text("".join(json.dumps({**r, "commit": "def5678"} if r["kind"] == "start" else r)
+                                                + "\n" for r in lines))
+    ran.clear()
+    report.run_report("reproduce", out, tmp_path / "nbs", sources=sources[2:5], store=store)
+    assert sorted(ran) == ["03_loss", "04_netvlad", "05_salad"]
+
+
 def test_the_command_line_options(tmp_path, capsys):
     for argv, message in ((["--into-committed"], "goes with --notebook"),
                           (["--notebook", "03", "--notebooks", "0*.ipynb"], "not both"),

@@ -287,21 +287,26 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     out = Path(out)
     for sub in ("notebooks", "figures", "records"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    # a run over a subset of the notebooks must not leave copies and figures of an earlier run beside it
-    for old in [*(out / "notebooks").glob("*.ipynb"), *(out / "figures").glob("*.png"), *(out / "records").glob("*"),
-                out / "results.json", out / "results.md", out / "results.jsonl", out / "comparison.md"]:
-        old.unlink(missing_ok=True)
     header = environment_header(profile)
     os.environ[STORE_ENV] = str(Path(store).resolve()) if store else "off"     # the kernels inherit it
     start, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
     attempt = run_attempts.Attempt(out / "attempts.jsonl")
     earlier = attempt.begin(commit=header.get("git commit"), profile=profile, notebooks=[p.name for p in sources],
                             store=os.environ[STORE_ENV] if store else None)
+    resumed = run_attempts.finished_notebooks(earlier, header.get("git commit"))
+    # a run over a subset of the notebooks must not leave copies and figures of an earlier run beside it; a run
+    # started again keeps those of the notebooks an earlier attempt of it finished (from the same commit)
+    for old in [*(out / "notebooks").glob("*.ipynb"), *(out / "figures").glob("*.png"), *(out / "records").glob("*"),
+                out / "results.json", out / "results.md", out / "results.jsonl", out / "comparison.md"]:
+        if not any(old.parent.parent == out and (old.name.startswith(f"{n}.") or old.name.startswith(f"{n}_"))
+                   for n in resumed):
+            old.unlink(missing_ok=True)
     if earlier:
         print(f"[....] attempt {len(earlier) + 1} of this run: {len(earlier)} earlier attempt(s) stopped after "
-              f"{sum(a['last'] - a['start'] for a in earlier) / 60:.1f} min; finished fine-tunes are reused",
+              f"{sum(a['last'] - a['start'] for a in earlier) / 60:.1f} min; finished fine-tunes are reused"
+              + (f", and the notebooks they finished: {', '.join(sorted(resumed))}" if resumed else ""),
               flush=True)
-    done: dict[str, dict] = {}
+    done: dict[str, dict] = dict(resumed)
 
     def started(src):
         print(f"[run ] {src.name} (profile {profile})", flush=True)
@@ -314,8 +319,9 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
         print(f"[{entry['status']:>4}] {entry['name']}.ipynb {entry['seconds']:.1f} s"
               + (f"  {entry['error']}" if entry["error"] else ""), flush=True)
         done[entry["name"]] = entry
+        attempt.notebook_done(entry)
 
-    pending, running = list(sources), {}
+    pending, running = [p for p in sources if p.stem not in resumed], {}
     with LocalEngine(jobs).executor() as pool:    # jobs = 1: each notebook runs here, one after another
         while pending or running:
             ready = [p for p in pending if deps[p.stem] <= set(done)] or pending[:not running]   # a cycle: in order

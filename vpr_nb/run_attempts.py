@@ -2,7 +2,9 @@
 is one run made in several attempts, the later ones reusing the finished fine-tunes of the task store.
 
 Each attempt appends to ``OUT/attempts.jsonl``: a ``start`` line (time, git commit, profile, notebooks, store), an
-``alive`` line every minute while it runs, and an ``end`` line when it finishes. An attempt started after one that
+``alive`` line every minute while it runs, a ``notebook`` line with each notebook's report entry as it ends, and an
+``end`` line when it finishes. An attempt started again from the same commit skips the notebooks an earlier one
+finished ok (:func:`finished_notebooks`) and keeps their outputs. An attempt started after one that
 ended, or with another profile, notebook list or store (or none), begins a new run (the file starts again). So a killed
 attempt's wall time is known to within a minute, and the report of the attempt that finishes gives the whole
 run's: :func:`read` lists the attempts, :func:`summary` their wall times and sum.
@@ -32,11 +34,26 @@ def read(path) -> list[dict]:
         except (ValueError, KeyError, TypeError):
             continue
         if kind == "start":
-            attempts.append({**r, "start": t, "last": t, "ended": False})
+            attempts.append({**r, "start": t, "last": t, "ended": False, "finished": {}})
+        elif attempts and kind == "notebook" and isinstance(r.get("entry"), dict) \
+                and isinstance(r["entry"].get("name"), str):
+            attempts[-1]["finished"][r["entry"]["name"]] = r["entry"]
+            attempts[-1]["last"] = max(attempts[-1]["last"], t)
         elif attempts and kind in ("alive", "end"):
             attempts[-1]["last"] = max(attempts[-1]["last"], t)
             attempts[-1]["ended"] = attempts[-1]["ended"] or kind == "end"
     return attempts
+
+
+def finished_notebooks(attempts, commit) -> dict[str, dict]:
+    """The report entries of the notebooks that ``attempts`` (the earlier ones of this run) finished ok from the
+    commit ``commit``: a run started again keeps them and runs only the others (a notebook finished by other code
+    runs again)."""
+    out: dict[str, dict] = {}
+    for a in attempts:
+        if a.get("commit") == commit and "uncommitted" not in str(commit):
+            out.update({name: e for name, e in a["finished"].items() if e.get("status") == "ok"})
+    return out
 
 
 def summary(attempts) -> dict:
@@ -63,7 +80,8 @@ class Attempt:
         torn = mode == "a" and self.path.is_file() and self.path.stat().st_size > 0 \
             and not self.path.read_bytes().endswith(b"\n")          # an attempt killed mid-line
         with self.path.open(mode, encoding="utf-8") as fh:
-            fh.write(("\n" if torn else "") + json.dumps({**record, "time": round(time.time(), 3)}) + "\n")
+            line = json.dumps({**record, "time": round(time.time(), 3)}, default=str)
+            fh.write(("\n" if torn else "") + line + "\n")
 
     def begin(self, **info) -> list[dict]:
         """Write the start line; returns the earlier attempts of the same run (empty for a new run)."""
@@ -79,6 +97,10 @@ class Attempt:
     def _beat(self) -> None:
         while not self._stop.wait(self.every):
             self._write({"kind": "alive"})
+
+    def notebook_done(self, entry: dict) -> None:
+        """A notebook of this attempt ended (its report entry: name, status, seconds, results, figures)."""
+        self._write({"kind": "notebook", "entry": entry})
 
     def end(self) -> None:
         self._stop.set()
