@@ -345,7 +345,7 @@ def test_a_run_started_again_reports_its_earlier_attempts(tmp_path, monkeypatch,
     assert "attempt 2 of this run: 1 earlier attempt(s) stopped after 5.0 min" in capsys.readouterr().out
     runs = payload["attempts"]
     assert [(a["minutes"], a["ended"]) for a in runs["attempts"]][0] == (5.0, False) and runs["minutes"] >= 5.0
-    assert "| 1 | abc1234 | 5.0 | no (stopped) |" in (out / "results.md").read_text()
+    assert "| 1 | abc1234 | 5.0 |  | no (stopped) |" in (out / "results.md").read_text()   # no CPU recorded
     again = report.run_report("reproduce", out, tmp_path / "nbs", sources=sources[2:3], store=store)
     assert len(again["attempts"]["attempts"]) == 1                    # the run had finished: a new run
 

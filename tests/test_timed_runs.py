@@ -21,14 +21,14 @@ REPORT = {
               "simulated minutes": {"2": 310.0, "8": 80.5, "16": 45.0, "64": 30.0}},
     "attempts": {"attempts": [{"commit": "abc1234", "minutes": 260.0, "ended": False},
                               {"commit": "abc1234", "minutes": 50.0, "ended": True}],
-                 "minutes": 310.0, "last share": 0.161}}
+                 "minutes": 310.0, "cpu minutes": 589.0, "idle share": 0.05, "last share": 0.161}}
 
 
 def test_a_report_becomes_a_record_and_the_docs_tables():
     record = tr.record_of(REPORT)
     assert record["wall minutes"] == 310.0 and record["notebooks"]["03_loss"]["reused"] == 40
     block = tr.docs_block([record])
-    assert "| abc1234 | 2026-12-08 | 2 | **310** | 95 | 0.050 | 310 / 80.5 / 45 / 30 |" in block
+    assert "| abc1234 | 2026-12-08 | 2 | **310** | 589 | 0.050 | 310 / 80.5 / 45 / 30 |" in block
     assert "| 03_loss | 49.5 | 150 | 40 | 600 | 4.2 |" in block
     assert tr.readme_text([record]) == "5.2 h on 2 cores, measured in 2 attempts; resumes if stopped"
     assert "No whole" in tr.docs_block([])
@@ -39,7 +39,7 @@ def test_a_report_becomes_a_record_and_the_docs_tables():
     (lambda r: r["header"].update({"git commit": "abc1234 (with uncommitted changes)"}), "clean commit"),
     (lambda r: r["notebooks"][1].update(status="failed"), "every notebook ok"),
     (lambda r: r.pop("attempts"), "older vpr_nb"),
-    (lambda r: r["tasks"].update({"idle share": float("nan")}), "idle share"),
+    (lambda r: r["attempts"].update({"idle share": float("nan")}), "idle share"),
     (lambda r: r["notebooks"][0].update(seconds="30"), "seconds"),
     (lambda r: r["tasks"]["simulated minutes"].pop("64"), "simulated minutes"),
 ])

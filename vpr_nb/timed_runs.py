@@ -77,8 +77,11 @@ def record_of(report: dict) -> dict:
             "attempts": [{"minutes": _number(a.get("minutes"), "an attempt's minutes"), "ended": bool(a.get("ended")),
                           "commit": _text(a.get("commit"), "an attempt's commit")} for a in runs],
             "wall minutes": _number(attempts.get("minutes"), "the attempts' minutes"),
-            "cpu minutes": _number(tasks.get("cpu minutes"), "the CPU minutes"),
-            "idle share": _number(tasks.get("idle share"), "the idle share"),
+            # the whole run's CPU and idle share (every attempt); a report without them: its last attempt's
+            "cpu minutes": _number(attempts.get("cpu minutes") if attempts.get("cpu minutes") is not None
+                                   else tasks.get("cpu minutes"), "the CPU minutes"),
+            "idle share": _number(attempts.get("idle share") if attempts.get("idle share") is not None
+                                  else tasks.get("idle share"), "the idle share"),
             "simulated minutes": {w: _number(sim.get(w, sim.get(int(w))), f"simulated minutes on {w}")
                                   for w in WORKERS},
             "notebooks": rows}
