@@ -97,6 +97,9 @@ def read_results(path) -> dict | None:
     return doc if isinstance(doc, dict) else None
 
 
+RUN_WORKERS = 2            # a reproduce run's fine-tunes run this many at a time on the 2 cores
+
+
 def _run_seconds(path: Path):
     """``(seconds, "date, commit")`` a committed results file records for its experiment, or None."""
     doc = read_results(path)
@@ -116,12 +119,11 @@ def _run_seconds(path: Path):
     return float(seconds), where
 
 
-RUN_WORKERS = 2            # a reproduce run's fine-tunes run this many at a time on the 2 cores
-
 # a notebook's package experiments, each in its own results file NN_<kind>.json (vpr_nb.onoff), timed apart
 EXTRAS = {"premise": "premise experiment", "probes": "probes", "control": "positive control",
           "nearmiss": "near-miss world", "fair_check": "fair design's check", "fair": "fair test",
-          "paper": "paper's comparison", "paper_salad": "paper's comparison with SALAD"}
+          "paper": "paper's comparison", "paper_salad": "paper's comparison with SALAD",
+          "paper_start": "paper's comparison from 05's SALAD"}
 
 
 def estimate(stem: str, profile: str, committed_dir) -> Estimate:
