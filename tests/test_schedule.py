@@ -47,3 +47,20 @@ def test_rounds_are_logged_and_a_torn_line_is_skipped(tmp_path):
     assert summary["notebooks"]["07_x"]["tasks"] == 3 and summary["notebooks"]["07_x"]["reused"] == 1
     assert summary["idle share"] == 0.25 and set(summary["simulated minutes"]) == {1, 2}
     json.dumps(summary)                                              # the report stores it in results.json
+
+
+def test_one_parser_reads_the_round_log_for_the_report_and_for_results(tmp_path, monkeypatch):
+    from vpr_nb import results
+    from vpr_nb.schedule import parse_round
+
+    path = tmp_path / "t.jsonl"
+    eng.log_round(1.0, 3.0, [1.5, 2.0], [False, True], environ={eng.TIMES_ENV: str(path)})
+    with open(path, "a") as fh:
+        fh.write('{"t0": 1, "t1": 2, "seconds": [1.0, 2.0], "reused": [true]}\n')       # lengths differ
+        fh.write('{"t0": 1, "t1": 2, "seconds": ["NaN"], "reused": [false]}\n')         # not a time
+        fh.write('["a list"]\n{"t0": 6.0, "t1"')                                       # foreign, then torn
+    assert parse_round('{"t0": 1, "t1": 2, "seconds": [3], "reused": [0]}') == {
+        "t0": 1.0, "t1": 2.0, "seconds": [3.0], "reused": [False]}
+    assert [r["seconds"] for r in read_rounds(path)] == [[1.5, 2.0]]
+    monkeypatch.setenv(eng.TIMES_ENV, str(path))
+    assert results.tasks_since_last_save() == {"run": 2, "reused": 1, "task seconds": 3.5}

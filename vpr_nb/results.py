@@ -42,6 +42,7 @@ import torch
 from .engine import TIMES_ENV
 from .package_data import committed_results_dir, results_dir_for_writing
 from .report import jsonable, environment_header, uncommitted_changes
+from .schedule import parse_round
 from .models import read_weights
 from .pretrain import CHECKPOINT
 from .synthetic import make_config
@@ -66,14 +67,9 @@ def tasks_since_last_save(environ=None) -> dict | None:
     start = start if start <= len(data) else 0          # the file was started again
     end = data.rfind(b"\n") + 1                          # whole lines only
     _TASKS_COUNTED[path] = max(end, start)
-    seconds, reused = [], []
-    for line in data[start:end].splitlines():
-        try:
-            r = json.loads(line)
-            seconds += [float(x) for x in r["seconds"]]
-            reused += [bool(x) for x in r["reused"]]
-        except (ValueError, KeyError, TypeError):
-            continue                                     # a torn or foreign line
+    rounds = [r for r in map(parse_round, data[start:end].splitlines()) if r is not None]   # torn lines skipped
+    seconds = [x for r in rounds for x in r["seconds"]]
+    reused = [x for r in rounds for x in r["reused"]]
     if not seconds:
         return None
     return {"run": len(seconds), "reused": sum(reused), "task seconds": round(sum(seconds), 1)}

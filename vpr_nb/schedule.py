@@ -76,24 +76,34 @@ def scaling_table(notebooks: Sequence[Sequence], workers=(2, 8, 16, 64)) -> dict
     return {int(w): round(simulate(notebooks, int(w)) / 60, 1) for w in workers}
 
 
-def read_rounds(path) -> list[dict]:
-    """The rounds a notebook logged (``$VPR_NB_TASK_TIMES``), skipping a line that is not a whole round (a kernel
-    killed mid-write)."""
+def parse_round(line: str | bytes) -> dict | None:
+    """One line of ``$VPR_NB_TASK_TIMES`` (:func:`vpr_nb.engine.log_round`) as ``{"t0", "t1", "seconds",
+    "reused"}``, with ``seconds`` as floats and ``reused`` as bools of equal length; None for a line that is not
+    a whole round (a kernel killed mid-write, or something else written there)."""
     import json
+
+    try:
+        r = json.loads(line)
+        seconds = [float(x) for x in r["seconds"]]
+        reused = [bool(x) for x in r["reused"]]
+        t0, t1 = float(r["t0"]), float(r["t1"])
+    except (ValueError, KeyError, TypeError):    # JSONDecodeError is a ValueError
+        return None
+    if len(seconds) != len(reused) or not all(math.isfinite(x) for x in (t0, t1, *seconds)):
+        return None
+    return {"t0": t0, "t1": t1, "seconds": seconds, "reused": reused}
+
+
+def read_rounds(path) -> list[dict]:
+    """The rounds a notebook logged (``$VPR_NB_TASK_TIMES``), each read by :func:`parse_round`, skipping a line
+    that is not a whole round."""
     from pathlib import Path
 
-    rounds = []
     path = Path(path)
     if not path.is_file():
-        return rounds
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            r = json.loads(line)
-            if isinstance(r, dict) and all(k in r for k in ("t0", "t1", "seconds", "reused")):
-                rounds.append(r)
-        except json.JSONDecodeError:
-            continue
-    return rounds
+        return []
+    rounds = (parse_round(line) for line in path.read_text(encoding="utf-8", errors="replace").splitlines())
+    return [r for r in rounds if r is not None]
 
 
 def run_summary(notebooks: Sequence[Mapping], rounds: Mapping[str, list], wall: float, cpu: float,
