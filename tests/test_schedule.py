@@ -4,7 +4,7 @@ import json
 import pytest
 
 from vpr_nb import engine as eng
-from vpr_nb.schedule import notebook_phases, read_rounds, run_summary, scaling_table, simulate
+from vpr_nb.schedule import fastest_possible, notebook_phases, read_rounds, run_summary, scaling_table, simulate
 
 
 def test_simulate_known_schedules():
@@ -64,3 +64,27 @@ def test_one_parser_reads_the_round_log_for_the_report_and_for_results(tmp_path,
     assert [r["seconds"] for r in read_rounds(path)] == [[1.5, 2.0]]
     monkeypatch.setenv(eng.TIMES_ENV, str(path))
     assert results.tasks_since_last_save() == {"run": 2, "reused": 1, "task seconds": 3.5}
+
+
+def test_a_notebook_that_reads_another_starts_after_it_and_no_schedule_beats_the_bound():
+    a = [("round", [60.0, 60.0])]
+    b = [("code", 10.0), ("round", [30.0])]
+    assert simulate([a, b], 64) == 60.0                             # side by side
+    assert simulate([a, b], 64, after=[set(), {0}]) == 100.0        # b waits for a
+    assert simulate([[], b], 4, after=[set(), {0}]) == 40.0         # nothing to wait for
+    with pytest.raises(ValueError, match="circle"):
+        simulate([a, b], 2, after=[{1}, {0}])
+    with pytest.raises(ValueError, match="after"):
+        simulate([a, b], 2, after=[{5}, set()])
+    assert fastest_possible([a, b], 1) == 160.0                     # all the work on one worker
+    assert fastest_possible([a, b], 64, after=[set(), {0}]) == 100.0   # the chain a -> b
+    for w in (1, 2, 3, 8):                                          # the simulation never beats the bound
+        assert simulate([a, b], w, after=[set(), {0}]) >= fastest_possible([a, b], w, after=[set(), {0}])
+    summary = run_summary([{"name": "05_x", "started": 0.0, "seconds": 60.0},
+                           {"name": "07_y", "started": 60.0, "seconds": 40.0}],
+                          {"05_x": [{"t0": 0.0, "t1": 60.0, "seconds": [60.0, 60.0], "reused": [False, False]}],
+                           "07_y": [{"t0": 70.0, "t1": 100.0, "seconds": [30.0], "reused": [True]}]},
+                          wall=100.0, cpu=160.0, cores=2, workers=(2, 64), after={"07_y": {"05_x", "99_absent"}})
+    assert summary["waits for"] == {"07_y": ["05_x"]}
+    assert summary["simulated minutes"] == {2: round(100 / 60, 1), 64: round(100 / 60, 1)}
+    assert summary["fastest possible minutes"] == {2: round(100 / 60, 1), 64: round(100 / 60, 1)}

@@ -28,7 +28,7 @@ def test_a_report_becomes_a_record_and_the_docs_tables():
     record = tr.record_of(REPORT)
     assert record["wall minutes"] == 310.0 and record["notebooks"]["03_loss"]["reused"] == 40
     block = tr.docs_block([record])
-    assert "| abc1234 | 2026-12-08 | 2 | **310** | 589 | 0.050 | 310 / 80.5 / 45 / 30 |" in block
+    assert "| abc1234 | 2026-12-08 | 2 | **310** | 589 | 0.050 | 310 / 80.5 / 45 / 30 | not recorded |" in block
     assert "| 03_loss | 49.5 | 150 | 40 | 600 | 4.2 |" in block
     assert tr.readme_text([record]) == "5.2 h on 2 cores, measured in 2 attempts; resumes if stopped"
     assert "No whole" in tr.docs_block([])
@@ -64,6 +64,30 @@ def test_the_command_keeps_a_record_and_rewrites_the_docs(tmp_path, capsys):
     (tmp_path / "bad.json").write_text("{")
     assert tr.main(["add", str(tmp_path / "bad.json"), "--root", str(tmp_path)]) == 2
     assert capsys.readouterr().err.startswith("error: cannot read")
+
+
+def test_a_run_folder_gives_its_summary_again_with_waits_and_the_fastest_schedule(tmp_path):
+    run = tmp_path / "reports"
+    (run / "records").mkdir(parents=True)
+    (run / "notebooks").mkdir()
+    report = copy.deepcopy(REPORT)
+    report["notebooks"][1]["started"] = 1000.0
+    for name, code in (("00_world", "x = 1"), ("03_loss", 'committed_experiment("00_world")')):
+        cells = [{"cell_type": "code", "source": code, "metadata": {}, "outputs": [], "execution_count": None}]
+        (run / "notebooks" / f"{name}.ipynb").write_text(json.dumps({"cells": cells}))
+    (run / "records" / "03_loss.tasks.jsonl").write_text(
+        json.dumps({"t0": 1000.0, "t1": 3970.0, "seconds": [2400.0] * 4, "reused": [True, False, False, False]})
+        + "\n")
+    (run / "results.json").write_text(json.dumps(report))
+    (tmp_path / "docs").mkdir()
+    assert tr.main(["add", str(run / "results.json"), "--root", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "docs" / "timed_runs" / "abc1234.json").read_text())
+    assert record["notebooks"]["03_loss"] == {"wall minutes": 49.5, "fine-tunes": 4, "reused": 1,
+                                              "task minutes": 160.0, "longest task (min)": 40.0}
+    # 03 waits for 00 (0.5 min); then one round of four 40-min tasks; 2 workers: two after two
+    assert record["simulated minutes"] == {"2": 80.5, "8": 40.5, "16": 40.5, "64": 40.5}
+    assert record["fastest possible minutes"] == {"2": 80.2, "8": 40.5, "16": 40.5, "64": 40.5}
+    assert "| 80.2 / 40.5 / 40.5 / 40.5 |" in tr.docs_block([record])
 
 
 def test_the_docs_and_readme_say_what_the_committed_records_give():

@@ -246,6 +246,17 @@ def notebook_dependencies(sources: list[Path]) -> dict[str, set[str]]:
     return deps
 
 
+def task_summary(out, entries: list[dict], wall: float, cpu: float, cores: int) -> dict:
+    """The run's tasks, idle share and simulated scaling (:func:`vpr_nb.schedule.run_summary`) from what the run
+    in ``out`` left: each notebook's logged rounds (``records/<stem>.tasks.jsonl``) and, for which notebook waits
+    for which, the executed copies in ``notebooks/`` (:func:`notebook_dependencies`)."""
+    out = Path(out)
+    copies = [out / "notebooks" / f"{e['name']}.ipynb" for e in entries]
+    deps = notebook_dependencies([p for p in copies if p.is_file()])
+    rounds = {e["name"]: schedule.read_rounds(out / "records" / f"{e['name']}.tasks.jsonl") for e in entries}
+    return schedule.run_summary(entries, rounds, wall, cpu, cores, after=deps)
+
+
 def _run_one(src: Path, out: Path, profile: str) -> dict:
     """Execute one notebook of the run (in a worker process when ``jobs`` > 1); its records go to a file
     of its own, so parallel notebooks never write one file."""
@@ -340,9 +351,8 @@ def run_report(profile: str, out="reports", notebooks_dir="notebooks", pattern: 
     print(f"[done] {len(entries)} notebooks in {wall / 60:.1f} min wall ({profile} profile, {jobs} at once; "
           f"{sum(e['seconds'] for e in entries) / 60:.1f} min of notebook time)", flush=True)
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    tasks = schedule.run_summary(entries, {e["name"]: schedule.read_rounds(out / "records" / f"{e['name']}.tasks.jsonl")
-                                           for e in entries}, wall, cpu1.ru_utime + cpu1.ru_stime
-                                 - cpu0.ru_utime - cpu0.ru_stime, os.cpu_count() or 1)
+    tasks = task_summary(out, entries, wall, cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime,
+                         os.cpu_count() or 1)
     payload = {"header": header, "notebooks": entries, "wall_seconds": round(wall, 1), "jobs": jobs, "tasks": tasks,
                "attempts": attempts}
     (out / "results.json").write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
