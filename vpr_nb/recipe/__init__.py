@@ -47,6 +47,8 @@ Modules, one job each:
   :func:`place_batch_labels`, :class:`PlaceBatches`, :class:`TripletBatches`;
 - :mod:`~vpr_nb.recipe.task` :class:`FineTuneTask` (one fine-tune and its key), :func:`run_task` (runs it,
   or reuses its stored result, :mod:`vpr_nb.task_store`), :class:`FineTuneResult`;
+- :mod:`~vpr_nb.recipe.segments` :func:`run_segment` and :func:`run_round` (a fine-tune a few epochs at a
+  time, :data:`SEGMENT_EPOCHS`, the same bits as whole), :class:`Segment`;
 - :mod:`~vpr_nb.recipe.search` :func:`fine_tune`, :func:`lr_search`, :func:`search_methods` (rounds of tasks on
   an engine, :mod:`vpr_nb.engine`), :class:`LRSearch`;
 - :mod:`~vpr_nb.recipe.arms` :func:`run_arms` (on/off experiments, paired by seed), :func:`pooled_recall` and
@@ -57,10 +59,11 @@ from __future__ import annotations
 from .method import BATCHES, Method
 from .protocol import RECIPE, Recipe
 from .search import LRSearch, drive, fine_tune, lr_search, search_methods, search_rounds
+from .segments import SEGMENT_EPOCHS, Segment, run_round, run_segment
 from .task import FineTuneResult, FineTuneTask, run_task
 from .start import PlaceBatches, TripletBatches, build_start, make_source, place_batch_labels
 from .validation import VALIDATION_WORLD, validation_split
 
-__all__ = ["BATCHES", "RECIPE", "VALIDATION_WORLD", "FineTuneResult", "FineTuneTask", "LRSearch", "Method",
+__all__ = ["BATCHES", "RECIPE", "SEGMENT_EPOCHS", "VALIDATION_WORLD", "Segment", "run_round", "run_segment", "FineTuneResult", "FineTuneTask", "LRSearch", "Method",
            "PlaceBatches", "Recipe", "TripletBatches", "build_start", "drive", "fine_tune", "lr_search", "make_source",
            "place_batch_labels", "run_task", "search_methods", "search_rounds", "validation_split"]

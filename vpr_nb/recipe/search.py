@@ -10,9 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._checks import check_int, check_positive
-from ..engine import LocalEngine, engine_from_env, timed_map
+from ..engine import LocalEngine, engine_from_env
 from .method import Method, _check_method
 from .protocol import RECIPE, Recipe, _check_recipe
+from .segments import SEGMENT_EPOCHS, run_round
 from .task import FineTuneResult, FineTuneTask, run_task
 
 
@@ -174,11 +175,13 @@ def search_rounds(method: Method, train_split, val_split, recipe: Recipe = RECIP
     return search
 
 
-def drive(rounds, engine=None) -> list:
+def drive(rounds, engine=None, segment_epochs: int | None = SEGMENT_EPOCHS) -> list:
     """Run generators of task rounds (:func:`search_rounds`) together: each step gathers the next round of every
     generator still running into one list for ``engine.map`` (default :class:`~vpr_nb.engine.LocalEngine`, one
     worker), sends each its results, and returns what each generator returned, in order. Rounds are
-    synchronous: a generator decides its next round from its whole previous one, whatever ran where."""
+    synchronous: a generator decides its next round from its whole previous one, whatever ran where. Each
+    fine-tune runs in segments of ``segment_epochs`` epochs (:func:`~vpr_nb.recipe.segments.run_round`; None:
+    whole), which gives the same bits."""
     engine = engine or LocalEngine()
     rounds = list(rounds)
     out: list = [None] * len(rounds)
@@ -191,7 +194,7 @@ def drive(rounds, engine=None) -> list:
     while pending:
         order = list(pending)
         batch = [t for i in order for t in pending[i]]
-        results = timed_map(engine, run_task, batch)
+        results = run_round(engine, batch, segment_epochs)
         pos, nxt = 0, {}
         for i in order:
             part, pos = results[pos:pos + len(pending[i])], pos + len(pending[i])

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -109,7 +110,10 @@ class PlaceBatches:
     """A :class:`Method`'s ``batches`` for place batches the recipe does not build itself: ``make_batches(model,
     epoch, rng)`` (e.g. :class:`vpr_nb.samplers.MixedPlaceBatches` of random and clique halves) over ``images``,
     with one loss per part of ``loss_groups`` (CliqueMining's two-loss step). Picklable when ``make_batches``
-    is (the package's samplers are), so :func:`search_methods` can run it in worker processes."""
+    is (the package's samplers are), so :func:`search_methods` can run it in worker processes. Each source it
+    makes gets its own copy of ``make_batches`` (a pickle round trip, as a worker process gets it): a sampler
+    with state (CliqueMining's group descriptors) never carries one fine-tune's state into the next fine-tune
+    run in the same process, so a task gives the same bits whatever ran before it."""
 
     name: str
     images: np.ndarray
@@ -117,5 +121,8 @@ class PlaceBatches:
     loss_groups: tuple[int, ...] | None = None
 
     def __call__(self, train_split, recipe, loss):
-        return PlaceBatchSource(self.images, self.make_batches, loss=loss or L.MultiSimilarityLoss(),
-                                loss_groups=self.loss_groups)
+        try:
+            make = pickle.loads(pickle.dumps(self.make_batches))
+        except (pickle.PicklingError, AttributeError, TypeError):    # e.g. a lambda: nothing to copy, no state
+            make = self.make_batches
+        return PlaceBatchSource(self.images, make, loss=loss or L.MultiSimilarityLoss(), loss_groups=self.loss_groups)

@@ -288,34 +288,54 @@ def _from_entry(task: FineTuneTask, model, start, tensors: dict, data: dict) -> 
     return FineTuneResult(task.method.name, task.seed, task.lr, fresh, history, start, seconds=seconds, reused=True)
 
 
-def run_task(task: FineTuneTask, *, progress: bool = False) -> FineTuneResult:
-    """Run ``task`` here: from the task store (``$VPR_NB_TASK_STORE``) when it holds this key and the start this
-    process builds is the one stored, else by training; a trained result is stored. Refuses to run a task
-    submitted with pinned kernels in an unpinned process (:func:`vpr_nb.engine.require_kernels`)."""
+def _prepare(task: FineTuneTask):
+    """What running ``task`` here starts from: ``(store, model, start, start digest, stored result or None)``."""
     if not isinstance(task, FineTuneTask):
         raise ValueError(f"task must be a FineTuneTask, got {type(task).__name__}")
     require_kernels(task.pinned)
-    t0 = time.perf_counter()
     store = store_from_env()
-    cache = _cache(task.recipe)
-    model = build_start(task.method, task.train, task.recipe, task.seed, cache)
+    model = build_start(task.method, task.train, task.recipe, task.seed, _cache(task.recipe))
     start = copy.deepcopy(model)
     detach(start.backbone)
     start_digest = _state_digest(start)
     entry = store.get(task.key()) if store is not None else None
+    reused = None
     if entry is not None and entry[1].get("start") == start_digest:
         reused = _from_entry(task, model, start, *entry)
-        if reused is not None:
-            return reused
+    return store, model, start, start_digest, reused
+
+
+def _train(task: FineTuneTask, model, *, progress: bool, stop_after: int | None, checkpoint_dir=None) -> History:
+    """Train ``model`` (``task``'s start, or resumed from ``checkpoint_dir/last.pt``) for ``stop_after`` epochs of
+    this call at most (None: to the end)."""
     try:
-        history = train(model, make_source(task.method, task.train, task.recipe), task.val,
-                        task.recipe.train_config(task.lr, task.seed), progress=progress,
-                        stop_after=task.stop_after)
+        return train(model, make_source(task.method, task.train, task.recipe), task.val,
+                     task.recipe.train_config(task.lr, task.seed), progress=progress, stop_after=stop_after,
+                     checkpoint_dir=checkpoint_dir, resume=checkpoint_dir is not None)
     finally:
         detach(model.backbone)
-    seconds = time.perf_counter() - t0
+
+
+def _finish(task: FineTuneTask, store, model, history: History, start, start_digest: str, seconds: float,
+            total_seconds: float | None = None) -> FineTuneResult:
+    """The result of a trained ``task``, kept in ``store`` (when there is one) with ``total_seconds`` (default:
+    ``seconds``), what the whole task took."""
+    total = seconds if total_seconds is None else total_seconds
     if store is not None:
         store.put(task.key(), model.state_dict(), {"history": history.to_dict(), "start": start_digest,
-                                                   "seconds": round(seconds, 3), "label": task.label(),
+                                                   "seconds": round(total, 3), "label": task.label(),
                                                    "python": sys.version.split()[0]})
     return FineTuneResult(task.method.name, task.seed, task.lr, model, history, start, seconds=seconds)
+
+
+def run_task(task: FineTuneTask, *, progress: bool = False) -> FineTuneResult:
+    """Run ``task`` here: from the task store (``$VPR_NB_TASK_STORE``) when it holds this key and the start this
+    process builds is the one stored, else by training; a trained result is stored. Refuses to run a task
+    submitted with pinned kernels in an unpinned process (:func:`vpr_nb.engine.require_kernels`).
+    :func:`vpr_nb.recipe.segments.run_segment` runs it a few epochs at a time, to the same bits."""
+    t0 = time.perf_counter()
+    store, model, start, start_digest, reused = _prepare(task)
+    if reused is not None:
+        return reused
+    history = _train(task, model, progress=progress, stop_after=task.stop_after)
+    return _finish(task, store, model, history, start, start_digest, time.perf_counter() - t0)
