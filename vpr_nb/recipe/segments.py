@@ -32,7 +32,7 @@ from ..engine import timed_map
 from ..task_store import key_digest
 from .task import FineTuneResult, FineTuneTask, _finish, _prepare, _train, run_task
 
-SEGMENT_EPOCHS = 10    # the longest course fine-tune epoch measured is 20 s (SALAD, 2 cores): a segment < 4 min
+SEGMENT_EPOCHS = 10    # a course epoch takes up to about 25 s on one core (07's longest task: 44 epochs, 17.9 min)
 
 
 @dataclass(eq=False)
