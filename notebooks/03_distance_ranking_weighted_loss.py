@@ -484,7 +484,7 @@ def print_table(title, names):
 
 
 print(f"reproduce profile, {len(SEEDS)} paired seeds (notebooks/results/03_distance_ranking_weighted_loss.json, "
-      f"date {st['date']}; {res['seconds'] / 60:.0f} min wall on 2 cores); test Recall@N, "
+      f"date {st['date']}; {results.run_minutes(committed):.0f} min on 2 cores); test Recall@N, "
       f"mean ± std over seeds {SEEDS}")
 print()
 print_table(f"Table II analog: losses, course backbone (last block trained) + NetVLAD-{RECIPE.netvlad_clusters}",
@@ -630,7 +630,7 @@ pres = pc["results"]
 PREM = pres["premise"]
 ARM_NAMES = onoff_dwt.EXPERIMENT["arms"]
 print(f"{PREM['worlds']['on']['test queries']} test queries; {len(onoff_dwt.SEEDS)} paired seeds "
-      f"(notebooks/results/03_premise.json, date {pc['stamp']['date']}; {pres['seconds'] / 60:.0f} min on 2 cores)")
+      f"(notebooks/results/03_premise.json, date {pc['stamp']['date']}; {results.run_minutes(pc):.0f} min on 2 cores)")
 print(f"{'':10}" + "".join(f"{n:>22}" for n in ARM_NAMES))
 for world in ("on", "off"):
     arms = pres["arms"][world]
@@ -716,7 +716,7 @@ cc = results.made_or_loaded("03_control", dwt_control.EXPERIMENT, lambda: dwt_co
     baseline={a: {"R@1": v["R@1"]} for a, v in SGD_ARMS.items()}), PROFILE)
 cres, CTRL = cc["results"], cc["results"]["premise"]
 CTRL_GATES = dwt_control.gates(cres["arms"])
-print(f"notebooks/results/03_control.json, date {cc['stamp']['date']}; {cres['seconds'] / 60:.0f} min on 2 cores")
+print(f"notebooks/results/03_control.json, date {cc['stamp']['date']}; {results.run_minutes(cc):.0f} min on 2 cores")
 for world, label in (("on", "control: random positive within 40 m, σ 40 m"), ("off", "twin: best within 10 m, σ 800 m")):
     w = CTRL["worlds"][world]
     beyond = w["mean w, positives beyond 25 m"]

@@ -471,7 +471,7 @@ for m, cols in res["per seed"].items():
     print(f"{m + ', fine-tuned':40s}{cols['dim'][0]:6d}{cells}{np.mean(cols['mean cosine']):13.3f}"
           f"   {cols['best epoch']}")
 print(f"paper: {PAPER}")
-print(f"(the committed run took {res['seconds'] / 60:.1f} min wall time, torch on one thread)")
+print(f"(the committed run took {results.run_minutes(committed):.1f} min, torch on one thread)")
 
 
 # %% [markdown]

@@ -462,7 +462,7 @@ PAPER = ("DINOv2-SALAD, the paper's README: R@1 / R@5 / R@10 = 0.922 / 0.964 / 0
 table(f"reproduce profile, {len(SEEDS)} seeds (notebooks/results/05_salad.json, date "
       f"{st['date']}): test Recall@N, mean ± std over seeds {SEEDS}", res["fixed"], rows)
 print(f"paper: {PAPER}")
-print(f"(the committed runs took {res['seconds'] / 60:.1f} min wall time in 2 processes, torch on one thread each)")
+print(f"(the committed runs took {results.run_minutes(committed):.1f} min in 2 processes, torch on one thread each)")
 
 
 # %% [markdown]
@@ -649,7 +649,7 @@ for name, r in SWEEP.items():
 # NBVAL_TOLERANCE=0.02
 pc = results.made_or_loaded("05_premise", onoff_salad.EXPERIMENT, onoff_salad.run, PROFILE)
 pres, PREM = pc["results"], pc["results"]["premise"]
-print(f"notebooks/results/05_premise.json, date {pc['stamp']['date']}; {pres['seconds'] / 60:.0f} min on 2 cores")
+print(f"notebooks/results/05_premise.json, date {pc['stamp']['date']}; {results.run_minutes(pc):.0f} min on 2 cores")
 for world in ("on", "off"):
     w, arms = PREM["worlds"][world], pres["arms"][world]
     print(f"\npremise {world}: distractors {w['value']:.3f} of the test pixels, {w['test queries']} test queries")
@@ -724,7 +724,7 @@ plt.show()
 # NBVAL_TOLERANCE=0.02
 fc = results.made_or_loaded("05_fair_check", salad_fair.CHECK_EXPERIMENT, salad_fair.check, PROFILE)
 fres = fc["results"]
-print(f"notebooks/results/05_fair_check.json, date {fc['stamp']['date']}; {fres['seconds'] / 60:.0f} min on 2 cores")
+print(f"notebooks/results/05_fair_check.json, date {fc['stamp']['date']}; {results.run_minutes(fc):.0f} min on 2 cores")
 for world in ("on", "off"):
     sh = fres["premise"][world]["label shares"]
     print(f"premise {world}: " + ", ".join(f"{n} {v:.3f}" for n, v in sh.items()) + " of the test pixels")
@@ -781,7 +781,7 @@ plt.show()
 # NBVAL_TOLERANCE=0.02
 tr = results.made_or_loaded("05_fair", salad_fair.EXPERIMENT, salad_fair.run, PROFILE)
 tres = tr["results"]
-print(f"notebooks/results/05_fair.json, date {tr['stamp']['date']}; {tres['seconds'] / 60:.0f} min on 2 cores")
+print(f"notebooks/results/05_fair.json, date {tr['stamp']['date']}; {results.run_minutes(tr):.0f} min on 2 cores")
 for world in ("on", "off"):
     print(f"\npremise {world}: untrained NetVLAD-16 {np.mean(tres['netvlad start'][world]):.3f}")
     for name in salad_fair.COMPARISON:

@@ -467,7 +467,7 @@ rep = {n: {k: f"{r[k]:.3f}" for k in METRICS} for n, r in res["fixed"].items()}
 for s, cols in res["per seed"].items():
     rep[s] = {k: "{:.3f} ± {:.3f}".format(*results.mean_std(cols[k])) for k in METRICS}
 show_table(rep, f"reproduce profile, {len(seeds)} seeds (notebooks/results/07_clique_mining.json, "
-                f"date {st['date']}; {res['seconds'] / 60:.0f} min wall on 2 cores); trained: "
+                f"date {st['date']}; {results.run_minutes(committed):.0f} min on 2 cores); trained: "
                 f"mean ± std over seeds {seeds}")
 for s, cols in res["per seed"].items():
     print(f"{s}: start R@1 {np.mean(cols['start R@1']):.3f}; best epoch per seed {cols['best epoch']}; "
@@ -563,7 +563,7 @@ def ms(vals):
 
 pc = results.made_or_loaded("07_premise", onoff_clique.EXPERIMENT, onoff_clique.run, PROFILE)
 pres, PREM = pc["results"], pc["results"]["premise"]
-print(f"notebooks/results/07_premise.json, date {pc['stamp']['date']}; {pres['seconds'] / 60:.0f} min on 2 cores")
+print(f"notebooks/results/07_premise.json, date {pc['stamp']['date']}; {results.run_minutes(pc):.0f} min on 2 cores")
 for world in ("on", "off"):
     w, arms, fz = PREM["worlds"][world], pres["arms"][world], pres["frozen"][world]
     print(f"\npremise {world}: frames {w['frame spacing (m)']:g} m apart, {w['test queries']} test queries; frozen "
@@ -625,9 +625,10 @@ plt.show()
 # %%
 # NBVAL_TOLERANCE=0.02
 RANDOM, CLIQUES = clique_probes.RANDOM, clique_probes.CLIQUES
-pp = results.made_or_loaded("07_probes", clique_probes.EXPERIMENT, lambda: clique_probes.run(pres["arms"]["on"]),
-                            PROFILE)["results"]
-print(f"notebooks/results/07_probes.json: premise on, 5 paired seeds, {pp['seconds'] / 60:.0f} min on 2 cores\n")
+probes = results.made_or_loaded("07_probes", clique_probes.EXPERIMENT,
+                                lambda: clique_probes.run(pres["arms"]["on"]), PROFILE)
+pp = probes["results"]
+print(f"notebooks/results/07_probes.json: premise on, 5 paired seeds, {results.run_minutes(probes):.0f} min on 2 cores\n")
 r1 = {**pp["paired with"], **{p: a["R@1"] for p, a in pp["arms"].items()}}
 print(f"{'dense half':28s} {'nearest negative':>16s} {'share <= 2.5 m':>14s} {'1st quarter':>11s} {'test R@1':>15s}")
 for name, b in pp["batches"].items():
@@ -689,7 +690,7 @@ plt.show()
 # NBVAL_TOLERANCE=0.02
 nc = results.made_or_loaded("07_nearmiss", clique_nearmiss.EXPERIMENT, clique_nearmiss.run, PROFILE)
 nres, nfz = nc["results"], nc["results"]["frozen"]
-print(f"notebooks/results/07_nearmiss.json, date {nc['stamp']['date']}; {nres['seconds'] / 60:.0f} min on 2 cores")
+print(f"notebooks/results/07_nearmiss.json, date {nc['stamp']['date']}; {results.run_minutes(nc):.0f} min on 2 cores")
 print(f"frames {nfz['frame spacing (m)']:g} m apart, {nfz['test queries']} test queries; frozen backbone + GeM: R@1 "
       f"{nfz['R@1']:.3f}; near misses {nfz['within 4 frames']:.3f} of its {nfz['failures']} failures within 4 frames "
       f"(1 m), {nfz['within 2 frames']:.3f} within 2; ceiling {nfz['ceiling (R@1)']:.3f} R@1")
@@ -752,7 +753,7 @@ PAPER = {"GeM": (results.made_or_loaded("07_paper", clique_paper.EXPERIMENT, cli
 for head, (pp, module) in PAPER.items():
     pres7 = pp["results"]
     print(f"{head} in every arm (notebooks/results/{pp['notebook']}.json, date {pp['stamp']['date']}; "
-          f"{pres7['seconds'] / 60:.0f} min on 2 cores); frozen backbone + GeM: R@1 {pres7['frozen']['R@1']:.3f}")
+          f"{results.run_minutes(pp):.0f} min on 2 cores); frozen backbone + GeM: R@1 {pres7['frozen']['R@1']:.3f}")
     for name in module.ARMS:
         a = pres7["arms"][name]
         print(f"  {name:24s} R@1 {ms(a['R@1'])}, start {np.mean(a['start R@1']):.3f}; lr {a['lr']:g} of "

@@ -224,3 +224,14 @@ def test_made_or_loaded_runs_and_saves_only_in_the_reproduce_profile(tmp_path, m
         doc["results"] and calls == [1]
     with pytest.raises(ValueError, match="function"):
         results.made_or_loaded("99_demo", {"epochs": 1}, {"R@1": 0.5}, "ci", results_dir=tmp_path)
+
+
+def test_run_minutes_counts_reused_fine_tunes_at_their_own_times():
+    doc = {"results": {"seconds": 120.0}, "stamp": {}}
+    assert results.run_minutes(doc) == 2.0
+    doc["stamp"]["fine-tunes"] = {"run": 40, "reused": 30, "task seconds": 6000.0}   # a run started again
+    assert results.run_minutes(doc) == 50.0                                         # 6000 s two at a time
+    doc["stamp"]["fine-tunes"] = {"run": 40, "reused": 0, "task seconds": 6000.0}
+    assert results.run_minutes(doc) == 2.0
+    with pytest.raises(ValueError, match="no run time"):
+        results.run_minutes({"results": {}, "stamp": {}})

@@ -100,23 +100,38 @@ def read_results(path) -> dict | None:
 RUN_WORKERS = 2            # a reproduce run's fine-tunes run this many at a time on the 2 cores
 
 
-def _run_seconds(path: Path):
-    """``(seconds, "date, commit")`` a committed results file records for its experiment, or None."""
-    doc = read_results(path)
-    seconds = (doc or {}).get("results", {}).get(TIME_KEY) if isinstance((doc or {}).get("results"), dict) else None
+def run_seconds(doc) -> float | None:
+    """What the experiment of a results document (``{"results": ..., "stamp": ...}``) took on the 2 cores, in
+    seconds: its recorded ``seconds``, or, when a run started again after an interruption made it (fine-tunes
+    reused from the task store, ``stamp["fine-tunes"]``), its fine-tunes' own times run :data:`RUN_WORKERS` at a
+    time, whichever is longer; None when it records no time."""
+    res = doc.get("results") if isinstance(doc, Mapping) else None
+    seconds = res.get(TIME_KEY) if isinstance(res, Mapping) else None
     if not (isinstance(seconds, (int, float)) and not isinstance(seconds, bool) and math.isfinite(seconds)
             and seconds > 0):
         return None
-    stamp = doc.get("stamp") if isinstance(doc.get("stamp"), dict) else {}
-    where = ", ".join(str(stamp[k]) for k in ("date", "git commit") if stamp.get(k))
-    tasks = stamp.get("fine-tunes") if isinstance(stamp.get("fine-tunes"), dict) else {}
+    stamp = doc.get("stamp") if isinstance(doc.get("stamp"), Mapping) else {}
+    tasks = stamp.get("fine-tunes") if isinstance(stamp.get("fine-tunes"), Mapping) else {}
     task_seconds, reused = tasks.get("task seconds"), tasks.get("reused")
     if isinstance(reused, int) and reused > 0 and isinstance(task_seconds, (int, float)) \
-            and math.isfinite(task_seconds) and task_seconds / RUN_WORKERS > seconds:
-        # made by a run started again after an interruption: its seconds are what was left; its fine-tunes'
-        # own times, run RUN_WORKERS at a time, are the whole
-        return float(task_seconds) / RUN_WORKERS, where + f"; {reused} fine-tunes reused, counted at their own times"
-    return float(seconds), where
+            and not isinstance(task_seconds, bool) and math.isfinite(task_seconds):
+        return max(float(seconds), float(task_seconds) / RUN_WORKERS)
+    return float(seconds)
+
+
+def _run_seconds(path: Path):
+    """``(seconds, "date, commit")`` a committed results file records for its experiment (:func:`run_seconds`),
+    or None."""
+    doc = read_results(path)
+    seconds = run_seconds(doc or {})
+    if seconds is None:
+        return None
+    stamp = doc.get("stamp") if isinstance(doc.get("stamp"), dict) else {}
+    where = ", ".join(str(stamp[k]) for k in ("date", "git commit") if stamp.get(k))
+    reused = (stamp.get("fine-tunes") or {}).get("reused") if isinstance(stamp.get("fine-tunes"), dict) else None
+    if seconds > doc["results"][TIME_KEY]:
+        where += f"; {reused} fine-tunes reused, counted at their own times"
+    return seconds, where
 
 
 # a notebook's package experiments, each in its own results file NN_<kind>.json (vpr_nb.onoff), timed apart

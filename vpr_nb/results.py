@@ -42,6 +42,7 @@ import torch
 from .engine import TIMES_ENV
 from .package_data import committed_results_dir, results_dir_for_writing
 from .report import jsonable, environment_header, uncommitted_changes
+from .reproduce_one import run_seconds
 from .schedule import parse_round
 from .models import read_weights
 from .pretrain import CHECKPOINT
@@ -73,6 +74,17 @@ def tasks_since_last_save(environ=None) -> dict | None:
     if not seconds:
         return None
     return {"run": len(seconds), "reused": sum(reused), "task seconds": round(sum(seconds), 1)}
+
+
+def run_minutes(doc) -> float:
+    """What a loaded results document's experiment took on the 2 cores, in minutes, counting fine-tunes reused
+    from an earlier attempt at the time each took (:func:`vpr_nb.reproduce_one.run_seconds`); ValueError when
+    it records no time."""
+    seconds = run_seconds(doc)
+    if seconds is None:
+        raise ValueError("these results record no run time (their 'seconds'); make them again with the notebook's "
+                         "reproduce profile")
+    return seconds / 60
 
 
 def _canonical(value):
