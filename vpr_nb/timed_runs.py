@@ -18,6 +18,8 @@ import re
 import sys
 from pathlib import Path
 
+from .report import task_summary
+
 BEGIN, END = "<!-- timed-runs: begin (python -m vpr_nb.timed_runs docs) -->", "<!-- timed-runs: end -->"
 README_LINE = re.compile(r"(make reproduce +# every notebook at its full budget, reports/ \()([^)]*)(\))")
 WORKERS = ("2", "8", "16", "64")
@@ -95,8 +97,6 @@ def with_task_summary(report: dict, folder) -> dict:
     rounds and notebooks the run left in ``folder``, so a run's record has every figure this version gives (the
     waits between notebooks, the fastest possible schedule) from the same logged times; as it is when the run's
     ``records/`` are gone."""
-    from .report import task_summary
-
     folder = Path(folder)
     tasks, notebooks = report.get("tasks"), report.get("notebooks")
     if not (folder / "records").is_dir() or not isinstance(tasks, dict) or not isinstance(notebooks, list):
