@@ -233,12 +233,12 @@ def test_an_engines_executor_returns_each_result_or_raises_its_error(workers):
             pool.submit(_square, -1).result()
 
 
-def _searches(world, engine):
+def _searches(world, engine, segment_epochs=None):
     tr, va = world
     recipe = dataclasses.replace(ONE, max_epochs=4, patience=4, lr_grid=(3e-4, 1e-3, 3e-3), search_seeds=2,
                                  halving_epochs=1, lr_extend=1, min_val_queries=0)
     methods = [Method("GeM", "gem"), (Method("GeM, SGD", "gem"), dataclasses.replace(recipe, optimizer="sgd"))]
-    return search_methods(methods, tr, va, recipe, seeds=(0, 1, 2), engine=engine)
+    return search_methods(methods, tr, va, recipe, seeds=(0, 1, 2), engine=engine, segment_epochs=segment_epochs)
 
 
 def _untimed(history) -> dict:
@@ -255,7 +255,8 @@ def _fingerprint(found) -> dict:
 @pytest.mark.slow
 def test_results_are_the_same_bits_on_one_and_two_workers_and_a_dask_cluster(world):
     """Successive halving and the grid's growth decide round by round, so the chosen lr and every run's weights
-    do not depend on where or how many tasks ran at once."""
+    do not depend on where or how many tasks ran at once, nor on how many epochs a task trains before the next
+    round (segments)."""
     distributed = pytest.importorskip("distributed", reason="the Dask test needs pip install 'vpr_nb[cluster]'")
     one = _fingerprint(_searches(world, eng.LocalEngine(1)))
     assert one == _fingerprint(_searches(world, eng.LocalEngine(2)))
@@ -263,6 +264,7 @@ def test_results_are_the_same_bits_on_one_and_two_workers_and_a_dask_cluster(wor
                                   silence_logs=40) as cluster, distributed.Client(cluster) as client:
         dask = eng.DaskEngine(client=client)
         assert one == _fingerprint(_searches(world, dask))
+        assert one == _fingerprint(_searches(world, dask, segment_epochs=1))   # each fine-tune a segment per epoch
         with dask.executor() as pool:     # what the report would submit notebooks through
             assert [pool.submit(_square, x).result() for x in (2, 3)] == [4, 9]
     assert all(s[2] for s in one.values())                     # halving stopped a rate in both searches

@@ -232,15 +232,16 @@ def _fixed_lr(method: Method, recipe: Recipe, lr) -> tuple[Method, Recipe]:
 
 
 def search_methods(methods, train_split, val_split, recipe: Recipe = RECIPE, seeds=(0,), *,
-                   lr=None, workers: int = 1, engine=None) -> dict:
+                   lr=None, workers: int = 1, engine=None, segment_epochs: int | None = SEGMENT_EPOCHS) -> dict:
     """:func:`lr_search` for each of ``methods``, as ``{method name: LRSearch}`` in the order given; ``lr``
     given: every method trains at that rate (an ``LRSearch`` with a one-point grid); a dict ``{method name:
     rate}`` fixes the rate of the methods it names (e.g. a committed choice, to re-make one seed).
 
     ``methods`` may also hold ``(method, recipe)`` pairs, for a row that deviates from the recipe (e.g. SGD).
     The searches advance together, round by round (:func:`drive`), on ``engine`` (default:
-    :func:`vpr_nb.engine.engine_from_env` with ``workers`` local processes); every run is seeded on its own, so
-    the results do not depend on the engine or its workers."""
+    :func:`vpr_nb.engine.engine_from_env` with ``workers`` local processes), each fine-tune in segments of
+    ``segment_epochs`` epochs (None: whole); every run is seeded on its own, so the results do not depend on the
+    engine, its workers or the segment length."""
     items = []
     for entry in methods:
         method, rec = entry if isinstance(entry, tuple) else (entry, recipe)
@@ -256,4 +257,4 @@ def search_methods(methods, train_split, val_split, recipe: Recipe = RECIPE, see
         lr = check_positive(lr, "lr")
     fixed = [_fixed_lr(m, rec, lr) for m, rec in items]
     gens = [search_rounds(m, train_split, val_split, rec, seeds) for m, rec in fixed]
-    return dict(zip(names, drive(gens, engine or engine_from_env(workers))))
+    return dict(zip(names, drive(gens, engine or engine_from_env(workers), segment_epochs)))
