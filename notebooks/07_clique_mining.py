@@ -535,8 +535,8 @@ plt.show()
 
 # %% [markdown]
 # **Reading the result.** Random dense places beat the frozen backbone + GeM
-# (+0.064 ± 0.010), and so do cliques (+0.050 ± 0.011). Cliques against random dense places: no measurable
-# effect on any metric. Sparse only stays below the frozen backbone (−0.122 ± 0.015): its SALAD head trains
+# (+0.059 ± 0.007), and so do cliques (+0.040 ± 0.008). Cliques against random dense places: no measurable
+# effect on any metric. Sparse only stays below the frozen backbone (−0.115 ± 0.013): its SALAD head trains
 # from scratch on city places. So the paper's comparison is inconclusive.
 
 # %%
