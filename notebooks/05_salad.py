@@ -373,7 +373,7 @@ for name, r in init_stats.items():
 # ## Experiment: GeM, NetVLAD and SALAD at usual and equal size
 #
 # Every row fine-tunes the last block with the **course recipe** (notebook 03) at lr $10^{-3}$, on paired
-# seeds 0–4.
+# seeds 0–7.
 #
 # * **Usual sizes**: GeM (128-D), NetVLAD-16 (2048-D), SALAD (576-D).
 # * **Equal size, 512-D**: NetVLAD-4 and SALAD-4, so only the assignment and what is summed differ.
@@ -990,11 +990,11 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 # ## Takeaways
 #
 # * **SALAD's published start collapses here**: f cosine 0.92, cluster cosine 1.000; standardised inputs give
-#   f cosine 0.46. Either start trains level (+0.015 ± 0.017).
-# * **At usual sizes NetVLAD-16 beats SALAD** (−0.094 ± 0.016); against GeM neither shows a measurable
-#   effect (+0.040 ± 0.010, −0.053 ± 0.014). Every triplet-trained row beats its start.
-# * **At equal size SALAD-4 − NetVLAD-4 shows no measurable effect** (−0.035 ± 0.015), nor do more clusters,
-#   for NetVLAD (+0.055 ± 0.020) or SALAD.
+#   f cosine 0.46. Either start trains level (+0.028 ± 0.013).
+# * **At usual sizes NetVLAD-16 beats SALAD** (−0.086 ± 0.011) and GeM (+0.040 ± 0.006); SALAD ends below
+#   GeM (−0.046 ± 0.010). Every triplet-trained row beats its start.
+# * **At equal size SALAD-4 − NetVLAD-4 shows no measurable effect** (−0.037 ± 0.010). More clusters help
+#   NetVLAD (+0.058 ± 0.012), not SALAD.
 # * **The features are diverse, SALAD's plan is not.** A frozen NetVLAD gains from 2 to 16 clusters
 #   (0.657 → 0.758); SALAD's trained plan stays near uniform (entropy 0.96 of $\log m$).
 # * **The dustbin's gain is small and not tied to distractors:** Sinkhorn − softmax is +0.006 ± 0.002 with
