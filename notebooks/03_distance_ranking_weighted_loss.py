@@ -904,14 +904,14 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 #
 # * **Eq. (4) at $\sigma = 800$ m is a learning-rate factor.** Over the 10 m radius the weight falls only
 #   from 10 to 8.8; W-T-Loss's gradient is T-Loss's times about 9.4, cosine 1.000.
-# * **Under SGD at one lr, the factor is what trains.** W-T − T = +0.022 ± 0.005 at the paper's lr. With SGD
+# * **Under SGD at one lr, the factor is what trains.** W-T − T = +0.023 ± 0.004 at the paper's lr. With SGD
 #   the placebo gains as much as DW-T-Loss.
-# * **Under Adam no loss beats the plain triplet loss.** Mean R@1: T 0.862, W-T 0.842, CE 0.840, DW-T 0.842
-#   (paper 0.812, 0.811, 0.797, 0.826). DW-T − T (−0.020 ± 0.009) and CE − T: no measurable effect.
+# * **Under Adam no loss beats the plain triplet loss.** Mean R@1: T 0.859, W-T 0.853, CE 0.841, DW-T 0.842
+#   (paper 0.812, 0.811, 0.797, 0.826). DW-T − T (−0.018 ± 0.008) and CE − T: no measurable effect.
 # * **Where Eq. (4) can rank, DW-T-Loss beats T-Loss** (+0.023 ± 0.005), not measurably its placebo
 #   (+0.018 ± 0.007). With wrong far positives (within 40 m) it beats the placebo too.
-# * **Table III analog: -W does not help.** Max-W − Max and Mean-W − Mean (−0.023 ± 0.006): no measurable
-#   effect; NetVLAD beats max pooling (+0.090 ± 0.014).
+# * **Table III analog: -W does not help.** Max-W − Max: no measurable effect; Mean-W − Mean hurts
+#   (−0.027 ± 0.004). NetVLAD beats max pooling (+0.081 ± 0.010).
 
 # %% [markdown]
 # ## Self-check
