@@ -379,7 +379,7 @@ for name, r in fixed.items():
 # once. Descriptors: GeM 128-D, NetVLAD ($K = 16$) 2048-D.
 #
 # The stored `ci` run: one seed, one epoch. Committed (`reproduce`): 5 seeds, 8 epochs each. Notebooks 03
-# (0.859) and 05 (0.830) train the NetVLAD row until validation stops improving; 03 also searches the lr.
+# and 05 train the NetVLAD row until validation stops improving; 03 also searches the lr.
 
 # %%
 TB = EXPERIMENT["trainable_blocks"]
