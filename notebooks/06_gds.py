@@ -141,10 +141,11 @@ print(f"generated in {time.perf_counter() - t0:.1f} s")
 # %%
 te, tr = ds.test, ds.train
 print(tr, te, sep="\n")
-# the course recipe with one deviation: an epoch of place batches has as many steps as an epoch of triplet
-# batches (one per 16 training queries), so the two arms get the same budget per epoch and the same cap
+# the course recipe with two deviations: an epoch of place batches has as many steps as an epoch of triplet
+# batches (one per 16 training queries), so the two arms get the same budget per epoch and the same cap; and
+# training stops after 6 epochs without a gain, not 4, so that an arm that improves late is not cut short
 STEPS_PER_EPOCH = math.ceil(len(tr.q_images) / RECIPE.batch_size)
-R06 = dataclasses.replace(RECIPE, place_batches_per_epoch=STEPS_PER_EPOCH)
+R06 = dataclasses.replace(RECIPE, place_batches_per_epoch=STEPS_PER_EPOCH, patience=6)
 EXPERIMENT["recipe"] = R06.to_dict()
 print(f"both arms: {STEPS_PER_EPOCH} steps per epoch, at most {R06.max_epochs} epochs, patience {R06.patience}")
 desc = {"raw pixels": {"db": raw_pixel_descriptors(te.db_images), "q": raw_pixel_descriptors(te.q_images)}}
