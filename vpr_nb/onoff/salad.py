@@ -69,7 +69,8 @@ TRAIN_WORLD = {"preset": "city", "seed": 0, "size": "tiny"}
 SEEDS = (0, 1, 2, 3, 4)
 ARMS = {"Sinkhorn": "sinkhorn", "softmax": "softmax"}          # arm name: SALAD's assignment
 COMPARISON = ("Sinkhorn", "softmax")
-RECIPE_ARMS = dataclasses.replace(RECIPE, search_seeds=1, salad_kmeans_scores=True)
+RECIPE_ARMS = dataclasses.replace(RECIPE, search_seeds=1, salad_kmeans_scores=True,
+                                  patience=6)   # 6 epochs without a gain, not 4: a late riser is not cut short
 LABELLED_IMAGES = 64                       # the dustbin's measurement: the first 64 test queries of the first
                                            # test world, rendered with content labels
 QUANTITY = "distractor pixel share of the test images (database and queries of every test world)"
