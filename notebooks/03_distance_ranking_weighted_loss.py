@@ -203,9 +203,9 @@ print("CE-Loss on descriptors scaled by 1e4 (naive exp would overflow):", f"{ce_
 # ## The course recipe, backbone and references
 #
 # Every fine-tune follows the **course recipe** (notebooks 03–07): the backbone's last block trains from a
-# k-means NetVLAD, with Adam, until validation R@1 stalls for 6 epochs (the recipe's 4 may stop a late riser). For one seed every row starts from
-# the **same weights**; only the loss (and its lr) or the pooling changes. The backbone outputs an 8×12 map
-# of 128-d local features; NetVLAD-16 makes a $16 \cdot 128 = 2048$-d descriptor.
+# k-means NetVLAD, with Adam, until validation R@1 stalls for 6 epochs (recipe: 4). For one seed every row
+# starts from the **same weights**; only the loss, its lr or the pooling changes. The backbone outputs 8×12
+# 128-d local features; NetVLAD-16 makes a $16 \cdot 128 = 2048$-d descriptor.
 
 # %%
 # NBVAL_IGNORE_OUTPUT
@@ -907,12 +907,12 @@ check("equal_step_lr", [Case(f"16 queries x 5 negatives within 10 m, lr 0.05, ma
 #   from 10 to 8.8; W-T-Loss's gradient is T-Loss's times about 9.4, cosine 1.000.
 # * **Under SGD at one lr, the factor is what trains.** W-T − T = +0.023 ± 0.004 at the paper's lr. With SGD
 #   the placebo gains as much as DW-T-Loss.
-# * **Under Adam no loss beats the plain triplet loss.** Mean R@1: T 0.859, W-T 0.853, CE 0.841, DW-T 0.842
-#   (paper 0.812, 0.811, 0.797, 0.826). DW-T − T (−0.018 ± 0.008) and CE − T: no measurable effect.
+# * **Under Adam no loss beats the plain triplet loss.** Mean R@1: T 0.861, W-T 0.853, CE 0.841, DW-T 0.844
+#   (paper 0.812, 0.811, 0.797, 0.826). DW-T − T (−0.017 ± 0.008) and CE − T: no measurable effect.
 # * **Where Eq. (4) can rank, DW-T-Loss beats T-Loss** (+0.023 ± 0.005), not measurably its placebo
 #   (+0.018 ± 0.007). With wrong far positives (within 40 m) it beats the placebo too.
 # * **Table III analog: -W does not help.** Max-W − Max: no measurable effect; Mean-W − Mean hurts
-#   (−0.027 ± 0.004). NetVLAD beats max pooling (+0.081 ± 0.010).
+#   (−0.033 ± 0.006). NetVLAD beats max pooling (+0.083 ± 0.010).
 
 # %% [markdown]
 # ## Self-check
