@@ -640,7 +640,8 @@ for name, r in SWEEP.items():
 #
 # Eq. (3) fixes the dustbin's share; only the score head chooses **which** features go there. The switch:
 # parked cars and pedestrians, new at every visit (**premise on**), or none (**off**). **Sinkhorn** with the
-# dustbin trains against a **softmax** over the clusters, both from NetVLAD's k-means scores, on 5 paired seeds.
+# dustbin trains against a **softmax** over the clusters, both from NetVLAD's k-means scores, on 5 paired
+# seeds, patience 6.
 #
 # **Prediction.** Sinkhorn beats softmax on, not off. **Kept-mass AUC**: the chance that an object cell keeps
 # more mass than a non-object cell (0.5: no preference).
@@ -699,7 +700,7 @@ plt.show()
 # * *Sinkhorn − softmax, premise on*: no measurable effect.
 # * *Sinkhorn − softmax, premise off*: no measurable effect.
 #
-# Caveats: seed 4 (on) never left its start; some runs peaked near the epoch cap.
+# Caveat: some runs kept their last epochs, at the 24-epoch cap (epochs kept per seed, above).
 #
 # | design | could it show the dustbin working? | what it showed |
 # |---|---|---|
