@@ -50,7 +50,7 @@ from vpr_nb.onoff import dwt_control
 from vpr_nb.premise import dwt as premise_dwt
 from vpr_nb.premise.record import verdict_lines
 from vpr_nb.pretrain import card, course_backbone
-from vpr_nb.recipe import RECIPE, VALIDATION_WORLD, Method, build_start, search_methods, validation_split
+from vpr_nb.recipe import FAIR_PATIENCE, RECIPE, VALIDATION_WORLD, Method, build_start, search_methods, validation_split
 from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import mean_pairwise_cosine
@@ -223,7 +223,7 @@ print(f"train: {len(tr.q_images)} queries / {len(tr.db_images)} db; val: {len(va
 cb = card()
 print(f"course backbone: SmallCNN width {cb['config']['width']}, {cb['config']['out_channels']} output channels, "
       f"pretrained on city seeds {cb['config']['city_seeds']} and route seeds {cb['config']['route_seeds']}")
-R03 = dataclasses.replace(RECIPE, patience=6)   # the course recipe, but wait 6 epochs without a gain, not 4
+R03 = dataclasses.replace(RECIPE, patience=FAIR_PATIENCE)   # the course recipe, but wait 6 epochs without a gain, not 4
 print(f"recipe: {R03.optimizer}, batch {R03.batch_size} queries x {R03.num_negatives} negatives, "
       f"lr grid {R03.lr_grid} + the paper's {PAPER_LR}, patience {R03.patience} (the course recipe's: "
       f"{RECIPE.patience}), at most {R03.max_epochs} epochs, aggregators read the backbone after its ReLU: "

@@ -146,6 +146,9 @@ TRAINCONFIG_DEFAULTS = ("momentum", "scheduler", "linear_end_factor", "linear_st
 OPTIONAL_SETTINGS = ("salad_kmeans_scores", "salad_kmeans_temperature")
 _DEFAULTS = {f.name: f.default for f in fields(Recipe)}
 RECIPE = Recipe()
+# The patience of the fair tests and of every file re-made since: an arm that improves late is not cut short.
+# Files still made with RECIPE.patience (4) move to it one re-make at a time; then it becomes RECIPE's default.
+FAIR_PATIENCE = 6
 
 
 def _check_recipe(recipe) -> Recipe:
