@@ -50,7 +50,7 @@ from vpr_nb.onoff import dwt_control
 from vpr_nb.premise import dwt as premise_dwt
 from vpr_nb.premise.record import verdict_lines
 from vpr_nb.pretrain import card, course_backbone
-from vpr_nb.recipe import FAIR_PATIENCE, RECIPE, VALIDATION_WORLD, Method, build_start, search_methods, validation_split
+from vpr_nb.recipe import RECIPE, VALIDATION_WORLD, Method, build_start, search_methods, validation_split
 from vpr_nb.report import record
 from vpr_nb.synthetic import make_dataset
 from vpr_nb.training import mean_pairwise_cosine
@@ -223,11 +223,9 @@ print(f"train: {len(tr.q_images)} queries / {len(tr.db_images)} db; val: {len(va
 cb = card()
 print(f"course backbone: SmallCNN width {cb['config']['width']}, {cb['config']['out_channels']} output channels, "
       f"pretrained on city seeds {cb['config']['city_seeds']} and route seeds {cb['config']['route_seeds']}")
-R03 = dataclasses.replace(RECIPE, patience=FAIR_PATIENCE)   # the course recipe, but wait 6 epochs without a gain, not 4
-print(f"recipe: {R03.optimizer}, batch {R03.batch_size} queries x {R03.num_negatives} negatives, "
-      f"lr grid {R03.lr_grid} + the paper's {PAPER_LR}, patience {R03.patience} (the course recipe's: "
-      f"{RECIPE.patience}), at most {R03.max_epochs} epochs, aggregators read the backbone after its ReLU: "
-      f"{R03.after_relu}")
+print(f"recipe: {RECIPE.optimizer}, batch {RECIPE.batch_size} queries x {RECIPE.num_negatives} negatives, "
+      f"lr grid {RECIPE.lr_grid} + the paper's {PAPER_LR}, patience {RECIPE.patience}, at most "
+      f"{RECIPE.max_epochs} epochs, aggregators read the backbone after its ReLU: {RECIPE.after_relu}")
 
 
 def start_model(aggregator, seed=0, trainable_blocks=None):
@@ -388,7 +386,7 @@ SGD_ROWS = [Method("T-Loss, SGD", "netvlad", TripletLoss(margin=MARGIN)),
 EXPERIMENT = {
     "world": {"preset": "city", "seed": 0, "size": "tiny"},
     "worlds": {"validation": VALIDATION_WORLD},
-    "recipe": R03.to_dict(),
+    "recipe": RECIPE.to_dict(),
     "methods": [m.to_dict() for m in TABLE2 + TABLE3],
     "sgd rows": {"methods": [m.to_dict() for m in SGD_ROWS], "optimizer": "sgd", "momentum": 0.9, "lr": PAPER_LR},
     "seeds": list(range(8)),
@@ -440,11 +438,11 @@ print(f"{len(TABLE2 + TABLE3)} recipe rows, lr grid {TABLE2[0].lr_grid(RECIPE)};
 # NBVAL_IGNORE_OUTPUT
 # (wall time varies)
 t0 = time.perf_counter()
-live = run_all(CI["seeds"], dataclasses.replace(R03, max_epochs=CI["max_epochs"]), CI["train_queries"], search=False)
+live = run_all(CI["seeds"], dataclasses.replace(RECIPE, max_epochs=CI["max_epochs"]), CI["train_queries"], search=False)
 print(f"CI profile: {len(live)} rows trained in {time.perf_counter() - t0:.0f} s")
 if PROFILE == "reproduce":
     t0, c0 = time.perf_counter(), time.process_time()
-    per_seed = run_all(EXPERIMENT["seeds"], R03, None, workers=2)
+    per_seed = run_all(EXPERIMENT["seeds"], RECIPE, None, workers=2)
     results.save("03_distance_ranking_weighted_loss", EXPERIMENT, {
         "references": REFERENCES, "gradient ratios": RATIOS, "rows": per_seed,
         "seconds": round(time.perf_counter() - t0, 1)})

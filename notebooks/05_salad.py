@@ -57,8 +57,7 @@ from vpr_nb.training import mean_pairwise_cosine
 from vpr_nb.verdict import control_gate, family_note, gap as paired_gap, paired_differences, verdicts
 
 SETUP = vpr_nb.notebook.setup(PROFILE)   # checks PROFILE; one torch thread, everything seeded with 0
-R05 = dataclasses.replace(RECIPE, patience=6)   # the course recipe, but wait 6 epochs without a gain, not 4
-PAPER_INIT = dataclasses.replace(R05, salad_standardise=False)      # SALAD's published initialisation
+PAPER_INIT = dataclasses.replace(RECIPE, salad_standardise=False)   # SALAD's published initialisation
 EQUAL_SIZE = {"NetVLAD-4": {"num_clusters": 4},                     # 4 x 128 = 512-D
               "SALAD-4": {"num_clusters": 4, "cluster_dim": 96, "token_dim": 128}}   # 4 x 96 + 128 = 512-D
 METHODS = [Method("GeM", "gem"), Method("NetVLAD", "netvlad"), Method("SALAD", "salad"),    # the usual sizes
@@ -70,7 +69,7 @@ METHODS = [Method("GeM", "gem"), Method("NetVLAD", "netvlad"), Method("SALAD", "
 EXPERIMENT = {                 # every setting of this notebook's reproduce-profile experiment
     "world": {"preset": "city", "seed": 0, "size": "tiny"},
     "worlds": {"validation": VALIDATION_WORLD},
-    "recipe": R05.to_dict(),
+    "recipe": RECIPE.to_dict(),
     "methods": [m.to_dict() if isinstance(m, Method) else {**m[0].to_dict(), "recipe": {"salad_standardise": False}}
                 for m in METHODS],
     "lr": RECIPE.lr,
@@ -78,7 +77,7 @@ EXPERIMENT = {                 # every setting of this notebook's reproduce-prof
     "plan statistics": {"images": "first 64 test queries"},
 }
 RUN = vpr_nb.notebook.budget(PROFILE, ci={"methods": 3, "max_epochs": 1, "seeds": [0]},
-                             reproduce={"methods": len(METHODS), "max_epochs": R05.max_epochs, "seeds": EXPERIMENT["seeds"]})
+                             reproduce={"methods": len(METHODS), "max_epochs": RECIPE.max_epochs, "seeds": EXPERIMENT["seeds"]})
 SALAD_SIZE = RECIPE.aggregator_kwargs("salad")       # 16 clusters x 32 + a 64-D token; paper: 64, 128, 256, 512, 0.3
 NETVLAD_K = RECIPE.netvlad_clusters
 NS = RECIPE.ns
@@ -408,10 +407,10 @@ def summarise(searches):
 
 
 t_all = time.perf_counter()
-recipe_run = dataclasses.replace(R05, max_epochs=RUN["max_epochs"])
+recipe_run = dataclasses.replace(RECIPE, max_epochs=RUN["max_epochs"])
 paper_init = dataclasses.replace(PAPER_INIT, max_epochs=RUN["max_epochs"])
 todo = [(m, recipe_run) if isinstance(m, Method) else (m[0], paper_init) for m in METHODS[:RUN["methods"]]]
-searches = search_methods(todo, train_split, val_split, R05, RUN["seeds"], lr=EXPERIMENT["lr"],
+searches = search_methods(todo, train_split, val_split, RECIPE, RUN["seeds"], lr=EXPERIMENT["lr"],
                           workers=2 if PROFILE == "reproduce" else 1)
 live = summarise(searches)
 

@@ -49,7 +49,7 @@ def test_the_kmeans_switch_is_off_by_default_and_out_of_todays_recipe_dict():
     assert not RECIPE.salad_kmeans_scores and "salad_kmeans_scores" not in RECIPE.to_dict()
     assert os_.RECIPE_ARMS.to_dict()["salad_kmeans_scores"] is True
     assert dataclasses.replace(os_.RECIPE_ARMS, salad_kmeans_scores=False).to_dict() == \
-        dataclasses.replace(RECIPE, search_seeds=1, patience=6).to_dict()
+        dataclasses.replace(RECIPE, search_seeds=1).to_dict()
     with pytest.raises(ValueError, match="salad_kmeans_scores"):
         Recipe(salad_kmeans_scores=1)
 

@@ -10,7 +10,7 @@ from vpr_nb.recipe.protocol import RUN_TRAINING, TRAINCONFIG_DEFAULTS
 from vpr_nb.training import TrainConfig
 from vpr_nb.training.config import DEFAULT_LR, train_config_from
 
-SGD_RECIPE = dataclasses.replace(RECIPE, optimizer="sgd", patience=6, initial_candidate=False)
+SGD_RECIPE = dataclasses.replace(RECIPE, optimizer="sgd", patience=4, initial_candidate=False)
 
 
 def _default(cls, name):
@@ -59,9 +59,9 @@ def test_the_recipes_trainconfig_is_the_one_it_always_was():
     common = dict(momentum=0.9, weight_decay=1e-3, scheduler="step", step_size=5, gamma=0.5, linear_end_factor=0.2,
                   linear_steps=4000, ns=(1, 5, 10), restore_best=True, device="cpu", amp=False)
     assert RECIPE.train_config(3e-4, seed=2) == TrainConfig(epochs=24, optimizer="adam", lr=3e-4, seed=2,
-                                                            initial_candidate=True, patience=4, **common)
+                                                            initial_candidate=True, patience=6, **common)
     assert SGD_RECIPE.train_config(1e-3, 0) == TrainConfig(epochs=24, optimizer="sgd", lr=1e-3, seed=0,
-                                                           initial_candidate=False, patience=6, **common)
+                                                           initial_candidate=False, patience=4, **common)
 
 
 def test_train_config_from_takes_fields_by_name_and_refuses_bad_input():

@@ -8,8 +8,9 @@ off, the twin: NetVLAD's best positive within 10 m at the paper's sigma = 800 m 
 world). The four arms of :mod:`vpr_nb.onoff.dwt` train in both.
 
 The recipe (:data:`RECIPE_CONTROL`, the premise experiment's) deviates from the course's in one way, the same
-for every arm: the start is **not** a selection candidate and patience is 6 epochs. With wrong positives an arm
-may first fall and then climb, and patience 4 with the start as a candidate would stop it before it climbs.
+for every arm: the start is **not** a selection candidate (patience is the recipe's 6 epochs). With wrong
+positives an arm may first fall and then climb, and the start as a candidate with a short patience would stop
+it before it climbs.
 Each arm's lr is chosen on the mean over seeds 0-2, as the course recipe does.
 
 Wrong positives may push T-Loss below its start by design, so the protocol's gate is T-Loss beating its start

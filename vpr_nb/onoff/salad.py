@@ -59,7 +59,7 @@ import numpy as np
 from .._checks import check_int
 from ..premise import salad as premise_salad
 from ..premise.record import paired_differences, premise_record
-from ..recipe import FAIR_PATIENCE, RECIPE, VALIDATION_WORLD, Method, build_start
+from ..recipe import RECIPE, VALIDATION_WORLD, Method, build_start
 from ..recipe.arms import CITY_TEST_WORLDS, pooled_recall, run_arms
 from ..synthetic import LABEL_NAMES, make_dataset
 
@@ -69,7 +69,7 @@ TRAIN_WORLD = {"preset": "city", "seed": 0, "size": "tiny"}
 SEEDS = (0, 1, 2, 3, 4)
 ARMS = {"Sinkhorn": "sinkhorn", "softmax": "softmax"}          # arm name: SALAD's assignment
 COMPARISON = ("Sinkhorn", "softmax")
-RECIPE_ARMS = dataclasses.replace(RECIPE, search_seeds=1, salad_kmeans_scores=True, patience=FAIR_PATIENCE)
+RECIPE_ARMS = dataclasses.replace(RECIPE, search_seeds=1, salad_kmeans_scores=True)
 LABELLED_IMAGES = 64                       # the dustbin's measurement: the first 64 test queries of the first
                                            # test world, rendered with content labels
 QUANTITY = "distractor pixel share of the test images (database and queries of every test world)"

@@ -36,7 +36,7 @@ import dataclasses
 from .._checks import check_int
 from ..losses import MultiSimilarityLoss
 from ..premise.record import paired_differences, premise_record
-from ..recipe import FAIR_PATIENCE, RECIPE, VALIDATION_WORLD, Method, build_start
+from ..recipe import RECIPE, VALIDATION_WORLD, Method, build_start
 from ..recipe.arms import CITY_TEST_WORLDS, counted_queries, pooled_recall, run_arms
 from ..verdict import control_gate, verdicts
 from . import salad as os_
@@ -46,7 +46,7 @@ WORLDS = {"on": ON, "off": {}}
 TEMPERATURES = {"on": {"Sinkhorn": 4.0, "softmax": 14.0}, "off": {"Sinkhorn": 4.0, "softmax": 13.0}}
 SEEDS = tuple(range(8))                 # 8 paired seeds: the paper's headline comparison
 CHECK_SEEDS = (0, 1, 2, 3, 4)          # the design's check before training (05_fair_check.json)
-RECIPE_FAIR = dataclasses.replace(RECIPE, salad_kmeans_scores=True, patience=FAIR_PATIENCE, max_epochs=40, search_seeds=3)
+RECIPE_FAIR = dataclasses.replace(RECIPE, salad_kmeans_scores=True, max_epochs=40, search_seeds=3)
 COMPARISON = ("Sinkhorn", "softmax")
 GATE_REFERENCE = "untrained NetVLAD-16"
 DUSTBIN_COMPARISONS = ("distractor − object, trained", "distractor − object, trained − start",

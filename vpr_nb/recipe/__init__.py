@@ -57,13 +57,13 @@ Modules, one job each:
 from __future__ import annotations
 
 from .method import BATCHES, Method
-from .protocol import FAIR_PATIENCE, RECIPE, Recipe
+from .protocol import RECIPE, Recipe
 from .search import LRSearch, drive, fine_tune, lr_search, search_methods, search_rounds
 from .segments import SEGMENT_EPOCHS, Segment, run_round, run_segment
 from .task import FineTuneResult, FineTuneTask, run_task
 from .start import PlaceBatches, TripletBatches, build_start, make_source, place_batch_labels
 from .validation import VALIDATION_WORLD, validation_split
 
-__all__ = ["BATCHES", "FAIR_PATIENCE", "RECIPE", "SEGMENT_EPOCHS", "VALIDATION_WORLD", "Segment", "run_round", "run_segment", "FineTuneResult", "FineTuneTask", "LRSearch", "Method",
+__all__ = ["BATCHES", "RECIPE", "SEGMENT_EPOCHS", "VALIDATION_WORLD", "Segment", "run_round", "run_segment", "FineTuneResult", "FineTuneTask", "LRSearch", "Method",
            "PlaceBatches", "Recipe", "TripletBatches", "build_start", "drive", "fine_tune", "lr_search", "make_source",
            "place_batch_labels", "run_task", "search_methods", "search_rounds", "validation_split"]
