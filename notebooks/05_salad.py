@@ -991,11 +991,11 @@ check("dustbin_mass", [Case(f"4 clusters, 12 features, z = {z:g}, {it} iteration
 # ## Takeaways
 #
 # * **SALAD's published start collapses here**: f cosine 0.92, cluster cosine 1.000; standardised inputs give
-#   f cosine 0.46. Either start trains level (+0.028 ± 0.013).
-# * **At usual sizes NetVLAD-16 beats SALAD** (−0.086 ± 0.011) and GeM (+0.040 ± 0.006); SALAD ends below
-#   GeM (−0.046 ± 0.010). Every triplet-trained row beats its start.
-# * **At equal size SALAD-4 − NetVLAD-4 shows no measurable effect** (−0.037 ± 0.010). More clusters help
-#   NetVLAD (+0.058 ± 0.012), not SALAD.
+#   f cosine 0.46. Either start trains level (+0.027 ± 0.011).
+# * **At usual sizes NetVLAD-16 beats SALAD** (−0.087 ± 0.008) and GeM (+0.038 ± 0.004); SALAD ends below
+#   GeM (−0.049 ± 0.008). Every triplet-trained row beats its start.
+# * **At equal size SALAD-4 − NetVLAD-4 shows no measurable effect** (−0.032 ± 0.010). More clusters help
+#   NetVLAD (+0.061 ± 0.010), not SALAD.
 # * **The features are diverse, SALAD's plan is not.** A frozen NetVLAD gains from 2 to 16 clusters
 #   (0.657 → 0.758); SALAD's trained plan stays near uniform (entropy 0.96 of $\log m$).
 # * **The dustbin's gain is small and not tied to distractors:** Sinkhorn − softmax is +0.006 ± 0.002 with
