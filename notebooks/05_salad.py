@@ -509,6 +509,9 @@ fig.tight_layout()
 plt.show()
 for m in rows:
     print(f"{m:18s}: best epoch {rows[m]['best epoch']}, epochs run {rows[m]['epochs run']}")
+at_cap = [f"{m} seed {SEEDS[i]}" for m in rows for i, e in enumerate(rows[m]["epochs run"]) if e >= RECIPE.max_epochs]
+print(f"caveat: {len(at_cap)} of {sum(map(len, (r['epochs run'] for r in rows.values())))} runs reached the "
+      f"{RECIPE.max_epochs}-epoch cap before patience ({RECIPE.patience}) stopped them: {', '.join(at_cap) or 'none'}")
 
 # %% [markdown]
 # **Figure 3.** Validation Recall@1 per epoch, averaged over the seeds still training; dashed: equal-size and
