@@ -21,14 +21,15 @@ import torch
 
 from . import results
 from .kernels import apply_in_process, is_pinned
-from .onoff import (clique, clique_nearmiss, clique_paper, clique_paper_salad, clique_probes, dwt, dwt_control,
-                    salad, salad_fair)
+from .onoff import (clique, clique_nearmiss, clique_paper, clique_paper_netvlad, clique_paper_salad, clique_probes, dwt,
+                    dwt_control, salad, salad_fair)
 from .recipe.arms import Selection
 
 # results file -> the package experiment that makes it
 EXPERIMENTS = {"03_premise": dwt, "03_control": dwt_control, "05_premise": salad, "05_fair": salad_fair,
                "07_premise": clique, "07_probes": clique_probes, "07_nearmiss": clique_nearmiss,
-               "07_paper": clique_paper, "07_paper_salad": clique_paper_salad}
+               "07_paper": clique_paper, "07_paper_salad": clique_paper_salad,
+               "07_paper_netvlad": clique_paper_netvlad}
 
 
 def _flat(doc: Mapping, probes: bool) -> dict:
