@@ -367,6 +367,36 @@ def test_the_papers_comparison_with_salad_reads_as_stored():
     assert "gate: " + cps.gate(res).text() in outputs and v["sparse + dense cliques − sparse + dense random"].text() in outputs
 
 
+
+def test_the_papers_comparison_with_netvlad_changes_only_the_head():
+    from vpr_nb.onoff import clique_paper_netvlad as cpn
+    assert set(cpn.EXPERIMENT) == set(cp.EXPERIMENT) and cpn.HEAD == "netvlad"
+    assert {k for k in cp.EXPERIMENT if cp.EXPERIMENT[k] != cpn.EXPERIMENT[k]} == {"aggregator"}
+
+
+def test_the_papers_comparison_with_netvlad_reads_as_stored():
+    from vpr_nb.onoff import clique_paper_netvlad as cpn
+    res = _stored("07_paper_netvlad")
+    so = res["arms"][cpn.ARMS[0]]
+    # "NetVLAD-16 (starting near it [the frozen model])"; "with NetVLAD-16 the gate passes and cliques beat sparse
+    # only, as in the paper. Random dense places beat cliques by more."
+    assert len(so["R@1"]) >= 8 and all(a["lr interior"] for a in res["arms"].values())
+    assert abs(np.mean(so["start R@1"]) - res["frozen"]["R@1"]) < 0.05
+    assert cpn.gate(res).passed
+    v = cpn.verdicts_of(res)
+    gain, loss = v["sparse + dense cliques − sparse only"], v["sparse + dense cliques − sparse + dense random"]
+    assert gain.word == "helps" and loss.word == "hurts"
+    assert abs(np.mean(res["comparisons"]["sparse + dense cliques − sparse + dense random"])) > \
+        abs(np.mean(res["comparisons"]["sparse + dense cliques − sparse only"]))
+    nb, outputs, scope = _notebook("07_clique_mining")
+    text = " ".join(scope(nb, "07_paper_netvlad").split())
+    assert "With NetVLAD-16 the gate passes and cliques beat sparse only, as in the paper" in text
+    assert "Random dense places beat cliques by more" in text
+    assert "gate: " + cpn.gate(res).text() in outputs and gain.text() in outputs and loss.text() in outputs
+    takeaways = " ".join(_takeaways(nb).split())
+    assert f"cliques beat sparse only ({gain.text().split(' (')[0]})" in takeaways
+    assert f"lose to random dense places ({loss.text().split(' (')[0].replace('-', '−')})" in takeaways
+
 def test_the_positive_control_reading_follows_its_stored_arms():
     res = _stored("03_control")
     on = res["arms"]["on"]
