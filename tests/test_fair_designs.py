@@ -367,7 +367,6 @@ def test_the_papers_comparison_with_salad_reads_as_stored():
     assert "gate: " + cps.gate(res).text() in outputs and v["sparse + dense cliques − sparse + dense random"].text() in outputs
 
 
-
 def test_the_papers_comparison_with_netvlad_changes_only_the_head():
     from vpr_nb.onoff import clique_paper_netvlad as cpn
     assert set(cpn.EXPERIMENT) == set(cp.EXPERIMENT) and cpn.HEAD == "netvlad"
@@ -396,6 +395,7 @@ def test_the_papers_comparison_with_netvlad_reads_as_stored():
     takeaways = " ".join(_takeaways(nb).split())
     assert f"cliques beat sparse only ({gain.text().split(' (')[0]})" in takeaways
     assert f"lose to random dense places ({loss.text().split(' (')[0].replace('-', '−')})" in takeaways
+
 
 def test_the_positive_control_reading_follows_its_stored_arms():
     res = _stored("03_control")
