@@ -617,7 +617,7 @@ plt.show()
 # Each world trains T-Loss, CE-Loss, DW-T-Loss and a **placebo**: Eq. (9) with the batch's distances
 # shuffled, same weights, unrelated to the triplet. Each arm's lr is chosen on 3 seeds' mean; 8 paired
 # seeds; the test cities are unseen. No arm is cut short: the start is not a selection candidate,
-# patience is 6. Beside it, the paper's protocol: SGD at one lr.
+# patience is 6. Beside it, the paper's protocol: SGD at one lr, patience 4.
 #
 # **Prediction.** If ranking positives helps, DW-T-Loss beats the placebo with the premise on, not off. No
 # gap in the on world falsifies it here.
