@@ -138,7 +138,7 @@ def _run_seconds(path: Path):
 EXTRAS = {"premise": "premise experiment", "probes": "probes", "control": "positive control",
           "nearmiss": "near-miss world", "fair_check": "fair design's check", "fair": "fair test",
           "paper": "paper's comparison", "paper_salad": "paper's comparison with SALAD",
-          "paper_start": "paper's comparison from 05's SALAD"}
+          "paper_netvlad": "paper's comparison with NetVLAD-16", "paper_start": "paper's comparison from 05's SALAD"}
 
 
 def estimate(stem: str, profile: str, committed_dir) -> Estimate:
