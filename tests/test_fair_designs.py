@@ -331,6 +331,22 @@ def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
         assert f"({v[name].text().split(' (')[0]})" in _takeaways(nb), name
 
 
+def test_03s_sgd_table_reading_follows_its_stored_arms():
+    # 03's design table: "SGD at one lr, with a placebo | yes, as a step size | DW-T-Loss and placebo gain alike";
+    # its takeaway: "With SGD the placebo gains as much as DW-T-Loss" (the notebook's family: both lrs, Holm)
+    from vpr_nb.verdict import paired_differences, verdicts
+    sgd = _stored("03_premise")["sgd"]
+    pairs = (("DW-T-Loss", "T-Loss"), ("placebo", "T-Loss"), ("DW-T-Loss", "placebo"))
+    fam = verdicts({f"lr {lr}: {a} − {b}": paired_differences(arms[a]["R@1"], arms[b]["R@1"])
+                    for lr, arms in sgd.items() for a, b in pairs})
+    assert len(sgd) == 2
+    for lr in sgd:
+        assert fam[f"lr {lr}: DW-T-Loss − T-Loss"].word == fam[f"lr {lr}: placebo − T-Loss"].word == "helps", lr
+        assert fam[f"lr {lr}: DW-T-Loss − placebo"].word == "no measurable effect", lr
+    nb, _, _ = _notebook("03_distance_ranking_weighted_loss")
+    assert "the placebo gains as much as DW-T-Loss" in _takeaways(nb)
+
+
 
 def test_the_papers_comparison_with_salad_changes_only_the_head():
     from vpr_nb.onoff import clique_paper_salad as cps

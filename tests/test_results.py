@@ -42,6 +42,18 @@ def test_the_stamp_counts_the_fine_tunes_logged_since_the_last_save(tmp_path, mo
     assert "fine-tunes" not in third["stamp"]                            # nothing since
 
 
+def test_a_run_started_again_counts_each_fine_tune_once(tmp_path, monkeypatch):
+    from vpr_nb import engine
+    log = tmp_path / "03.tasks.jsonl"
+    monkeypatch.setenv(results.TIMES_ENV, str(log))
+    # the first attempt (another process) ran two fine-tunes and was stopped; this one reuses them, runs a third
+    log.write_text(json.dumps({"t0": 0, "t1": 9, "seconds": [60.0, 90.0], "reused": [False, False],
+                               "process": "0123456789ab"}) + "\n")
+    engine.log_round(10.0, 11.0, [60.0, 90.0, 30.0], [True, True, False])
+    doc = json.loads(results.save("99_again", {}, {"x": 1}, results_dir=tmp_path).read_text())
+    assert doc["stamp"]["fine-tunes"] == {"run": 3, "reused": 2, "task seconds": 180.0}   # not 330
+
+
 def test_load_refuses_stale_or_missing_results(tmp_path):
     results.save("99_demo", {"epochs": 10, "lr": 0.01}, {"x": 1}, results_dir=tmp_path)
     with pytest.raises(ValueError, match=r"stale.*\['epochs'\]"):

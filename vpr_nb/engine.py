@@ -30,6 +30,7 @@ from .kernels import NATIVE_ENV, apply_in_process, is_pinned
 DASK_ENV = "VPR_NB_DASK"
 WORKERS_ENV = "VPR_NB_WORKERS"
 TIMES_ENV = "VPR_NB_TASK_TIMES"     # a JSON-lines file: one line per round of tasks (the report sets it)
+PROCESS_TOKEN = os.urandom(6).hex()  # marks the rounds this process logs (a run started again logs beside them)
 
 
 class KernelsNotPinned(RuntimeError):
@@ -150,12 +151,12 @@ def log_round(t0: float, t1: float, seconds: Sequence[float], reused: Sequence[b
               environ: Mapping | None = None) -> None:
     """Append one round of tasks to ``$VPR_NB_TASK_TIMES`` (nothing when unset): its start and end (epoch seconds)
     and each task's own run time (a reused task: the time it took when it ran), for the report's idle share and
-    its simulated schedule (:mod:`vpr_nb.schedule`)."""
+    its simulated schedule (:mod:`vpr_nb.schedule`), marked with this process's :data:`PROCESS_TOKEN`."""
     path = (os.environ if environ is None else environ).get(TIMES_ENV, "").strip()
     if not path:
         return
     line = json.dumps({"t0": round(t0, 3), "t1": round(t1, 3), "seconds": [round(float(x), 3) for x in seconds],
-                       "reused": [bool(r) for r in reused]})
+                       "reused": [bool(r) for r in reused], "process": PROCESS_TOKEN})
     with open(path, "a", encoding="utf-8") as fh:
         fh.write(line + "\n")
 

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import torch
 
-from .engine import TIMES_ENV
+from .engine import PROCESS_TOKEN, TIMES_ENV
 from .package_data import committed_results_dir, results_dir_for_writing
 from .report import jsonable, environment_header, uncommitted_changes
 from .reproduce_one import run_seconds
@@ -59,7 +59,8 @@ def tasks_since_last_save(environ=None) -> dict | None:
     last :func:`save`: ``{"run": n, "reused": m, "task seconds": s}``, where a task reused from the task store
     counts the time it took when it ran; None when nothing is logged. A results file made by a run that was
     interrupted and started again records a short ``seconds`` (only what was left to do) and its whole cost
-    here."""
+    here. Rounds another process logged (an earlier attempt's, in the same file) are not counted: the tasks
+    they ran count once, as reused ones, in this process's rounds."""
     path = (os.environ if environ is None else environ).get(TIMES_ENV, "").strip()
     if not path or not os.path.isfile(path):
         return None
@@ -68,7 +69,8 @@ def tasks_since_last_save(environ=None) -> dict | None:
     start = start if start <= len(data) else 0          # the file was started again
     end = data.rfind(b"\n") + 1                          # whole lines only
     _TASKS_COUNTED[path] = max(end, start)
-    rounds = [r for r in map(parse_round, data[start:end].splitlines()) if r is not None]   # torn lines skipped
+    rounds = [r for r in map(parse_round, data[start:end].splitlines())   # torn lines skipped, and the rounds of
+              if r is not None and r.get("process", PROCESS_TOKEN) == PROCESS_TOKEN]   # another process
     seconds = [x for r in rounds for x in r["seconds"]]
     reused = [x for r in rounds for x in r["reused"]]
     if not seconds:

@@ -118,8 +118,9 @@ def scaling_table(notebooks: Sequence[Sequence], workers=(2, 8, 16, 64), after: 
 
 def parse_round(line: str | bytes) -> dict | None:
     """One line of ``$VPR_NB_TASK_TIMES`` (:func:`vpr_nb.engine.log_round`) as ``{"t0", "t1", "seconds",
-    "reused"}``, with ``seconds`` as floats and ``reused`` as bools of equal length; None for a line that is not
-    a whole round (a kernel killed mid-write, or something else written there)."""
+    "reused"}`` (and ``"process"``, the token of the process that logged it, where the line has one), with
+    ``seconds`` as floats and ``reused`` as bools of equal length; None for a line that is not a whole round (a
+    kernel killed mid-write, or something else written there)."""
     import json
 
     try:
@@ -131,7 +132,10 @@ def parse_round(line: str | bytes) -> dict | None:
         return None
     if len(seconds) != len(reused) or not all(math.isfinite(x) for x in (t0, t1, *seconds)):
         return None
-    return {"t0": t0, "t1": t1, "seconds": seconds, "reused": reused}
+    out = {"t0": t0, "t1": t1, "seconds": seconds, "reused": reused}
+    if isinstance(r.get("process"), str):
+        out["process"] = r["process"]
+    return out
 
 
 def read_rounds(path) -> list[dict]:
