@@ -56,6 +56,7 @@ EXPERIMENT = {
     "aggregator": "netvlad",
     "eps": DEFAULT_EPS,
     "sgd": {"world": "off", "optimizer": "sgd", "momentum": 0.9, "lr": SGD_LR, "arm": NORMALISED,
+            "recipe": dwt.RECIPE_SGD.to_dict(),
             "paired with": "notebooks/results/03_premise.json, its SGD arms at the same lr"},
     "seeds": list(SEEDS),
     "premise quantity": "share of the trained-on positives farther than the 25 m evaluation radius (wrong at test)",
