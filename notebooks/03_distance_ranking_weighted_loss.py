@@ -655,11 +655,11 @@ for lr, arms in pres["sgd"].items():
     for a, b in SGD_PAIRS:
         print(f"          {a} − {b}: {sgd_family[f'lr {lr}: {a} − {b}'].text()}")
 print(family_note(sgd_family))
-late = {lr: sum(e > RECIPE.max_epochs - RECIPE.patience for a in arms.values() for e in a["best epoch"])
+SGD_RECIPE = onoff_dwt.RECIPE_SGD     # a run whose best epoch is later than cap − patience trained up to the cap
+late = {lr: [e > SGD_RECIPE.max_epochs - SGD_RECIPE.patience for a in arms.values() for e in a["best epoch"]]
         for lr, arms in pres["sgd"].items()}
-print(f"caveat: runs that reached the {RECIPE.max_epochs}-epoch cap before patience ({RECIPE.patience}) could stop "
-      "them: " + ", ".join(f"{n} of {sum(len(a['best epoch']) for a in pres['sgd'][lr].values())} at lr {lr}"
-                           for lr, n in late.items()))
+print(f"caveat: runs that reached the {SGD_RECIPE.max_epochs}-epoch cap before patience ({SGD_RECIPE.patience}) could stop them: "
+      + ", ".join(f"{sum(v)} of {len(v)} at lr {lr}" for lr, v in late.items()))
 
 # %%
 names = list(PREM["comparisons"])

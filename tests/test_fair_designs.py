@@ -333,7 +333,8 @@ def test_03s_premise_experiment_shares_its_recipe_and_twin_with_the_control():
 
 def test_03s_sgd_table_reading_follows_its_stored_arms():
     # 03's design table: "SGD at one lr, with a placebo | yes, as a step size | DW-T-Loss and placebo gain alike";
-    # its takeaway: "With SGD the placebo gains as much as DW-T-Loss" (the notebook's family: both lrs, Holm)
+    # its takeaway: "With SGD the placebo gains as much as DW-T-Loss" (Holm over these 6 gaps, both lrs: stricter
+    # than the notebook's 4)
     from vpr_nb.verdict import paired_differences, verdicts
     sgd = _stored("03_premise")["sgd"]
     pairs = (("DW-T-Loss", "T-Loss"), ("placebo", "T-Loss"), ("DW-T-Loss", "placebo"))
